@@ -1,0 +1,76 @@
+"""The `mmctl` command line.
+
+Each command lives in its own module under :mod:`mmctl.commands` with two functions,
+``add_arguments(parser)`` and ``run(args) -> int``; heavy imports happen inside
+``run`` so that ``mmctl --help`` and the control commands stay fast.  Register a new
+command by adding one line to :data:`COMMANDS` (or to a group in :data:`GROUPS`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from mmctl import __version__
+from mmctl.errors import MmctlError
+
+#: (command, module, one-line help)
+COMMANDS: list[tuple[str, str, str]] = [
+    ("check-config", "mmctl.commands.check_config", "validate a YAML config file"),
+]
+
+#: group -> (help, [(sub-command, module, one-line help)])
+GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
+    "bench": ("benchmarks that print figures", []),
+    "probe": ("bring-up probes for one device", []),
+}
+
+
+def _add(sub: argparse._SubParsersAction, name: str, module: str, help_: str) -> None:
+    mod = importlib.import_module(module)
+    p = sub.add_parser(name, help=help_, description=mod.__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    mod.add_arguments(p)
+    p.set_defaults(_run=mod.run)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mmctl",
+        description="Control daemon of a UR10e + RB-KAIROS+ mobile manipulator for physical "
+        "human-robot interaction (minimum-energy whole-body admittance control).",
+    )
+    parser.add_argument("--version", action="version", version=f"mmctl {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module, help_ in COMMANDS:
+        _add(sub, name, module, help_)
+    for group, (help_, members) in GROUPS.items():
+        if not members:
+            continue
+        gp = sub.add_parser(group, help=help_, description=help_)
+        gsub = gp.add_subparsers(dest="subcommand", metavar="WHAT")
+        gsub.required = True
+        for name, module, mhelp in members:
+            _add(gsub, name, module, mhelp)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not hasattr(args, "_run"):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except MmctlError as exc:
+        print(f"mmctl {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

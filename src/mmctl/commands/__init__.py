@@ -1,0 +1,1 @@
+"""One module per `mmctl` command: ``add_arguments(parser)`` and ``run(args) -> int``."""

@@ -1,0 +1,22 @@
+"""`arm:` — the UR10e link (ur_rtde)."""
+
+from __future__ import annotations
+
+from mmctl.config.schema import param, section
+
+
+@section
+class ArmConfig:
+    """UR10e connection and command parameters."""
+
+    host: str = param("127.0.0.2", min_len=1, doc="controller address (the fake UR in simulation)")
+    frequency: float = param(500.0, unit="Hz", gt=0.0, le=500.0, doc="RTDE frequency")
+    speedj_acceleration: float = param(
+        4.0, unit="rad/s^2", gt=0.0, le=40.0, doc="acceleration passed to speedJ"
+    )
+    stop_deceleration: float = param(
+        10.0, unit="rad/s^2", gt=0.0, le=40.0, doc="deceleration of speedStop on a fault"
+    )
+    stale_cycles: int = param(
+        5, gt=0, doc="cycles without a new controller timestamp before a 'stale' fault"
+    )

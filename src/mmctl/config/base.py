@@ -1,0 +1,54 @@
+"""`base:` — the RB-KAIROS+ omnidirectional base: geometry and drive link."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from mmctl.config.schema import param, section, sub
+
+
+@section
+class MecanumConfig:
+    """Mecanum wheel geometry (RB-KAIROS+)."""
+
+    wheel_radius: float = param(0.127, unit="m", gt=0.0)
+    half_length: float = param(0.21528, unit="m", gt=0.0, doc="wheel x offset from the centre")
+    half_width: float = param(0.2690, unit="m", gt=0.0, doc="wheel y offset from the centre")
+    wheel_signs: tuple[float, ...] = param(
+        (1.0, 1.0, 1.0, 1.0), shape=(4,),
+        doc="+1/-1 per wheel (FL, FR, BL, BR): drive direction as mounted",
+    )
+
+
+@section
+class CanopenConfig:
+    """Four CiA 402 drives on a CAN bus."""
+
+    interface: str = param("virtual", min_len=1)
+    channel: str = param("mmctl-base", min_len=1)
+    bitrate: int = param(1_000_000, gt=0, unit="bit/s")
+    node_ids: tuple[int, ...] = param((1, 2, 3, 4), shape=(4,), ge=1, le=127, doc="FL, FR, BL, BR")
+    heartbeat_timeout: float = param(0.1, unit="s", gt=0.0, doc="silent drive -> fault")
+    heartbeat_period: float = param(0.02, unit="s", gt=0.0, doc="our producer heartbeat")
+    counts_per_rev: int = param(4096, gt=0, doc="encoder counts per wheel revolution")
+    sdo_timeout: float = param(0.5, unit="s", gt=0.0)
+
+
+@section
+class SerialConfig:
+    """Microcontroller bridge on a serial port."""
+
+    port: str = param("/dev/ttyUSB0", min_len=1)
+    baudrate: int = param(921600, gt=0)
+    timeout: float = param(0.05, unit="s", gt=0.0)
+
+
+@section
+class BaseConfig:
+    """Omnidirectional base."""
+
+    transport: Literal["canopen", "serial"] = param("canopen")
+    mecanum: MecanumConfig = sub(MecanumConfig)
+    canopen: CanopenConfig = sub(CanopenConfig)
+    serial: SerialConfig = sub(SerialConfig)
+    command_watchdog: float = param(0.2, unit="s", gt=0.0, doc="drives stop without commands")

@@ -1,0 +1,124 @@
+"""`admittance:`, `idk:` and `limits:` — the control chain's parameters."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from mmctl.config.schema import param, section, sub
+from mmctl.errors import ConfigError
+
+Strategy = Literal["min-energy", "locomotion", "switch", "manipulation", "constrained-min-energy"]
+STRATEGIES: tuple[str, ...] = (
+    "min-energy", "locomotion", "switch", "manipulation", "constrained-min-energy"
+)
+
+
+@section
+class AdmittanceConfig:
+    """Virtual admittance M v' + B v = f_h, per axis (vx, vy, vz, wx, wy, wz)."""
+
+    mass: tuple[float, ...] = param(
+        (4.0,) * 6, unit="kg | kg m^2", shape=(6,), gt=0.0,
+        doc="diagonal of the virtual mass M (must be positive definite: every entry > 0)",
+    )
+    damping: tuple[float, ...] = param(
+        (75.0,) * 6, unit="N s/m | N m s/rad", shape=(6,), gt=0.0,
+        doc="diagonal of the virtual damping B (every entry > 0)",
+    )
+
+
+@section
+class LocomotionConfig:
+    """Weights of the damped weighted least squares of the locomotion benchmark (eq. 7).
+
+    Not published in the paper.  Our defaults: the task weight W_alpha is large so the
+    twist is tracked closely; W_beta penalises arm joint speed 1000x more than base
+    speed, so the base carries the motion and the arm stays near q_des.
+    """
+
+    w_alpha: tuple[float, ...] = param((1.0e3,) * 6, shape=(6,), gt=0.0, doc="task weights")
+    w_beta: tuple[float, ...] = param(
+        (1.0,) * 6 + (1.0e-3,) * 3, shape=(9,), ge=0.0,
+        doc="velocity penalties (6 arm joints, then base vx, vy, wz)",
+    )
+
+
+@section
+class SwitchConfig:
+    """The switch benchmark: manipulation (arm only) <-> locomotion, blended."""
+
+    initial: Literal["manipulation", "locomotion"] = param("manipulation")
+    blend_time: float = param(0.3, unit="s", gt=0.0, le=5.0, doc="cross-fade time of a toggle")
+
+
+@section
+class ConstrainedConfig:
+    """Constrained min-energy QP (hard joint position/velocity/acceleration limits)."""
+
+    max_iter: int = param(200, gt=0, doc="QP solver iteration cap per cycle")
+    eps: float = param(1e-6, gt=0.0, doc="QP solver tolerance")
+
+
+@section
+class IdkConfig:
+    """Inverse differential kinematics."""
+
+    strategy: Strategy = param("min-energy", doc="IDK strategy at start-up")
+    null_gain: tuple[float, ...] = param(
+        (1.0,) * 6 + (0.0,) * 3, unit="1/s", shape=(9,), ge=0.0,
+        doc="diagonal of G in (I - J#J) G (q_des - q); base entries are 0 in the paper",
+    )
+    singular_threshold: float = param(
+        1e-3, gt=0.0,
+        doc="smallest eigenvalue of J M^-1 J^T (or J J^T) below which damping starts",
+    )
+    max_damping: float = param(
+        1e-2, gt=0.0, doc="damping added at an exactly singular configuration"
+    )
+    locomotion: LocomotionConfig = sub(LocomotionConfig)
+    switch: SwitchConfig = sub(SwitchConfig)
+    constrained: ConstrainedConfig = sub(ConstrainedConfig)
+
+
+_DEG = 3.141592653589793 / 180.0
+
+
+@section
+class LimitsConfig:
+    """Velocity/acceleration/position limits; q' is scaled as a whole to respect them."""
+
+    joint_velocity: tuple[float, ...] = param(
+        (120 * _DEG, 120 * _DEG, 180 * _DEG, 180 * _DEG, 180 * _DEG, 180 * _DEG),
+        unit="rad/s", shape=(6,), gt=0.0, doc="UR10e joint speed limits",
+    )
+    joint_acceleration: tuple[float, ...] = param(
+        (4.0,) * 6, unit="rad/s^2", shape=(6,), gt=0.0, doc="arm joint acceleration limits"
+    )
+    joint_position_min: tuple[float, ...] = param(
+        (-2 * 3.141592653589793, -2 * 3.141592653589793, -3.141592653589793,
+         -2 * 3.141592653589793, -2 * 3.141592653589793, -2 * 3.141592653589793),
+        unit="rad", shape=(6,),
+    )
+    joint_position_max: tuple[float, ...] = param(
+        (2 * 3.141592653589793, 2 * 3.141592653589793, 3.141592653589793,
+         2 * 3.141592653589793, 2 * 3.141592653589793, 2 * 3.141592653589793),
+        unit="rad", shape=(6,),
+    )
+    position_margin: float = param(
+        0.15, unit="rad", gt=0.0, doc="braking zone before a joint position limit"
+    )
+    base_linear_velocity: float = param(1.5, unit="m/s", gt=0.0)
+    base_angular_velocity: float = param(3.0, unit="rad/s", gt=0.0)
+    base_linear_acceleration: float = param(3.0, unit="m/s^2", gt=0.0)
+    base_angular_acceleration: float = param(3.0, unit="rad/s^2", gt=0.0)
+    wheel_velocity: float = param(27.27, unit="rad/s", gt=0.0)
+    ee_linear_velocity: float = param(1.0, unit="m/s", gt=0.0, doc="end-effector speed cap")
+    ee_angular_velocity: float = param(1.5, unit="rad/s", gt=0.0)
+
+    def validate(self, path: str, source: str | None) -> None:
+        for i, (lo, hi) in enumerate(zip(self.joint_position_min, self.joint_position_max)):
+            if not lo < hi:
+                raise ConfigError(
+                    f"{path}.joint_position_min[{i}]", lo,
+                    f"must be < joint_position_max[{i}] = {hi}", source,
+                )

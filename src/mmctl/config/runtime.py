@@ -1,0 +1,56 @@
+"""`loop:`, `safety:`, `daemon:`, `telemetry:` and `sim:` — the runtime around the control chain."""
+
+from __future__ import annotations
+
+from mmctl.config.schema import param, section
+
+
+@section
+class LoopConfig:
+    """The fixed-period control loop."""
+
+    rate_hz: float = param(500.0, unit="Hz", gt=0.0, le=2000.0)
+    spin_margin: float = param(
+        0.0003, unit="s", ge=0.0, doc="sleep until this long before the deadline, then spin"
+    )
+    max_consecutive_misses: int = param(5, gt=0, doc="consecutive deadline misses -> fault")
+    max_total_misses: int = param(1000, gt=0, doc="total misses since enable -> fault")
+    rt_priority: int = param(0, ge=0, le=99, doc="SCHED_FIFO priority; 0 = do not ask")
+    cpu_affinity: tuple[int, ...] = param((), doc="CPUs to pin the loop thread to; () = any")
+
+
+@section
+class SafetyConfig:
+    """Fault thresholds not owned by a device section."""
+
+    max_condition: float = param(
+        1e4, gt=1.0, doc="condition number of J M^-1 J^T above which the pose is 'singular'"
+    )
+
+
+@section
+class DaemonConfig:
+    """Control socket and process settings."""
+
+    socket_path: str = param(
+        "", doc="control socket; '' = $RUNTIME_DIRECTORY or $XDG_RUNTIME_DIR or /tmp, + mmctl.sock"
+    )
+    socket_mode: int = param(0o660, ge=0, le=0o777)
+
+
+@section
+class TelemetryConfig:
+    """rerun telemetry (off by default)."""
+
+    enabled: bool = param(False)
+    plot_rate: float = param(100.0, unit="Hz", gt=0.0)
+    scene_rate: float = param(30.0, unit="Hz", gt=0.0)
+    queue_size: int = param(4096, gt=0)
+
+
+@section
+class SimConfig:
+    """The simulated robot `mmctl run` uses when no hardware is configured."""
+
+    enabled: bool = param(True, doc="start the fakes (UR controller, sensor, drives, human)")
+    human: bool = param(True, doc="a simulated person pushes the handle")

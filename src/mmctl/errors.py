@@ -1,0 +1,52 @@
+"""The exception hierarchy: one root, one class per kind of failure."""
+
+from __future__ import annotations
+
+
+class MmctlError(Exception):
+    """Root of every error mmctl raises on purpose."""
+
+
+class ConfigError(MmctlError):
+    """A configuration value is missing, unknown, of the wrong type/shape or out of range.
+
+    The message always names the key path, the offending value and what is allowed.
+    """
+
+    def __init__(self, key: str, value: object, allowed: str, source: str | None = None):
+        self.key = key
+        self.value = value
+        self.allowed = allowed
+        self.source = source
+        where = f"{source}: " if source else ""
+        super().__init__(f"{where}{key} = {value!r}: {allowed}")
+
+
+class ModelError(MmctlError):
+    """The robot model could not be built or evaluated (unknown frame, bad parameters)."""
+
+
+class SingularityError(MmctlError):
+    """The task Jacobian is too close to singular for the requested motion."""
+
+
+class TransportError(MmctlError):
+    """A device link failed: nothing answers, a frame is malformed, a peer disconnected."""
+
+
+class ProtocolError(TransportError):
+    """Bytes arrived that do not follow the wire protocol (bad length, CRC, opcode...)."""
+
+
+class SafetyFault(MmctlError):
+    """A condition from SPEC §5 that forces the robot to stop; `cause` names it."""
+
+    def __init__(self, cause: str, **details: object):
+        self.cause = cause
+        self.details = details
+        extra = " ".join(f"{k}={v!r}" for k, v in details.items())
+        super().__init__(f"{cause} {extra}".strip())
+
+
+class IpcError(MmctlError):
+    """The control socket could not be reached or answered with an error."""
