@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from enum import Enum
+
 
 class MmctlError(Exception):
     """Root of every error mmctl raises on purpose."""
@@ -41,12 +43,34 @@ class ProtocolError(TransportError):
 class SafetyFault(MmctlError):
     """A condition from SPEC §5 that forces the robot to stop; `cause` names it."""
 
-    def __init__(self, cause: str, **details: object):
-        self.cause = cause
+    def __init__(self, cause: FaultCause | str, **details: object):
+        self.cause = FaultCause(cause)
         self.details = details
         extra = " ".join(f"{k}={v!r}" for k, v in details.items())
-        super().__init__(f"{cause} {extra}".strip())
+        super().__init__(f"{self.cause.value} {extra}".strip())
 
 
 class IpcError(MmctlError):
     """The control socket could not be reached or answered with an error."""
+
+
+class FaultCause(str, Enum):
+    """Every reason the daemon stops the robot (SPEC §5); the value is the logged name."""
+
+    SENSOR_STALE = "sensor_stale"
+    SENSOR_STATUS = "sensor_status_error"
+    SENSOR_SATURATION = "sensor_saturation"
+    SENSOR_LINK = "sensor_link_lost"
+    WRENCH_LIMIT = "wrench_limit"
+    ARM_DISCONNECTED = "arm_disconnected"
+    ARM_NOT_PLAYING = "arm_not_playing"
+    ARM_PROTECTIVE_STOP = "arm_protective_stop"
+    ARM_EMERGENCY_STOP = "arm_emergency_stop"
+    ARM_STALE = "arm_timestamp_stale"
+    DRIVE_FAULT = "drive_fault"
+    DRIVE_HEARTBEAT = "drive_heartbeat_lost"
+    BASE_LINK = "base_link_lost"
+    LOOP_OVERRUN = "loop_overrun"
+    NON_FINITE = "non_finite_value"
+    SINGULAR = "singular_configuration"
+    INTERNAL = "internal_error"
