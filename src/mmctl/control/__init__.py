@@ -1,0 +1,1 @@
+"""Pure control math: no I/O, no clocks, no logging (numpy + Pinocchio)."""
