@@ -24,7 +24,11 @@ class RobotConfig:
     arm_mount: tuple[float, ...] = param(
         (0.0, 0.0, 0.56162), unit="m", shape=(3,), doc="arm base position in base_link"
     )
-    arm_mount_yaw: float = param(0.0, unit="rad", doc="arm base yaw about base_link z")
+    arm_mount_yaw: float = param(
+        math.pi, unit="rad",
+        doc="yaw of the UR base (DH frame 0) about base_link z; pi: the arm's reach "
+        "direction at shoulder_pan = 0 (DH -x) points forward (base +x)",
+    )
     sensor_offset: tuple[float, ...] = param(
         (0.0, 0.0, 0.0254), unit="m", shape=(3,),
         doc="F/T sensor measurement frame origin in the UR flange (tool0) frame",
