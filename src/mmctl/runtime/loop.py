@@ -1,0 +1,201 @@
+"""The fixed-period loop thread.
+
+Deadlines are absolute (``deadline += period`` on ``time.perf_counter_ns``), never reset
+from "now".  Each wait sleeps until ``spin_margin`` before the deadline and then spins,
+which trades a little CPU for a wake-up latency well below the OS sleep granularity.
+
+Overrun policy: when a cycle body ends after the next deadline, the deadlines that
+already passed are *skipped* (not run late back to back), the skip is counted, and
+once ``max_consecutive_misses`` cycles in a row or ``max_total_misses`` deadlines in
+all have been missed, the next :class:`Tick` carries ``overrun=True`` so the body can
+fault.  Timings of every cycle go to a :class:`~mmctl.runtime.timing.TimingRing`.
+
+An exception escaping the body stops the loop; it is stored in :attr:`CycleLoop.error`
+and re-raised by :meth:`CycleLoop.join`.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import structlog
+
+from mmctl.runtime.timing import TimingRing
+
+log = structlog.get_logger("mmctl.loop")
+
+
+class Tick(NamedTuple):
+    """What the loop tells the body at the start of a cycle.
+
+    index: cycle counter (0, 1, ...); deadline_ns: the absolute deadline this cycle
+    was due at [ns, perf_counter]; wake_ns: when it actually started [ns];
+    period_ns: the nominal period [ns]; consecutive_misses: cycles in a row that
+    overran; total_misses: deadlines skipped since the last :meth:`CycleLoop.reset_misses`;
+    overrun: the miss budget is exhausted (the body should fault).
+    """
+
+    index: int
+    deadline_ns: int
+    wake_ns: int
+    period_ns: int
+    consecutive_misses: int
+    total_misses: int
+    overrun: bool
+
+    @property
+    def period(self) -> float:
+        """The nominal period [s]."""
+        return self.period_ns * 1e-9
+
+
+Body = Callable[[Tick], None]
+
+
+def apply_realtime(rt_priority: int, cpu_affinity: Sequence[int]) -> list[str]:
+    """Best effort: SCHED_FIFO priority and CPU affinity for the *calling* thread.
+
+    Returns the list of what could not be applied (each also logged as a warning).
+    """
+    problems: list[str] = []
+    if cpu_affinity:
+        try:
+            os.sched_setaffinity(0, set(cpu_affinity))
+        except (OSError, AttributeError, ValueError) as exc:
+            problems.append("cpu_affinity")
+            log.warning("loop_affinity_not_applied", cpus=list(cpu_affinity), error=str(exc))
+    if rt_priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+        except (OSError, AttributeError) as exc:
+            problems.append("rt_priority")
+            log.warning("loop_rt_priority_not_applied", priority=rt_priority, error=str(exc),
+                        hint="grant CAP_SYS_NICE / LimitRTPRIO (see systemd/mmctl.service)")
+    return problems
+
+
+class CycleLoop:
+    """Runs ``body(tick)`` every period on its own thread.
+
+    rate_hz: cycle rate [Hz]; spin_margin: busy-wait window before each deadline [s];
+    max_consecutive_misses / max_total_misses: overrun budget (see module doc);
+    ring: where per-cycle timings go (a new one if None); rt_priority: SCHED_FIFO
+    priority, 0 = leave the scheduler alone; cpu_affinity: CPUs for the thread.
+    """
+
+    def __init__(
+        self,
+        body: Body,
+        rate_hz: float = 500.0,
+        spin_margin: float = 0.0003,
+        max_consecutive_misses: int = 5,
+        max_total_misses: int = 1000,
+        ring: TimingRing | None = None,
+        rt_priority: int = 0,
+        cpu_affinity: Sequence[int] = (),
+        name: str = "mmctl-loop",
+    ):
+        if rate_hz <= 0:
+            raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+        self._body = body
+        self.period_ns = round(1e9 / rate_hz)
+        self.spin_margin_ns = int(spin_margin * 1e9)
+        self.max_consecutive = max_consecutive_misses
+        self.max_total = max_total_misses
+        self.ring = ring if ring is not None else TimingRing()
+        self.rt_priority = rt_priority
+        self.cpu_affinity = tuple(cpu_affinity)
+        self.name = name
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._reset_requested = False
+        self.consecutive_misses = 0
+        self.total_misses = 0
+        self.cycles = 0
+
+    # -- lifecycle -----------------------------------------------------------------
+    def start(self) -> None:
+        """Start the loop thread (once)."""
+        if self._thread is not None:
+            raise RuntimeError("loop already started")
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Ask the loop to end after the current cycle (safe from any thread, twice)."""
+        self._stop.set()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and not self._done.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until the loop thread has ended; True if it has."""
+        return self._done.wait(timeout)
+
+    def join(self, timeout: float | None = None) -> None:
+        """Stop, wait for the thread, and re-raise an exception the body raised."""
+        self.stop()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        if self.error is not None:
+            raise self.error
+
+    def reset_misses(self) -> None:
+        """Zero the miss counters at the start of the next cycle (e.g. on enable)."""
+        self._reset_requested = True
+
+    # -- the thread ----------------------------------------------------------------
+    def _wait_until(self, deadline: int) -> int:
+        clock = time.perf_counter_ns
+        remaining = deadline - clock() - self.spin_margin_ns
+        if remaining > 0:
+            time.sleep(remaining * 1e-9)
+        now = clock()
+        while now < deadline:
+            now = clock()
+        return now
+
+    def _run(self) -> None:
+        apply_realtime(self.rt_priority, self.cpu_affinity)
+        clock = time.perf_counter_ns
+        period = self.period_ns
+        ring = self.ring
+        body = self._body
+        deadline = clock() + period
+        try:
+            while not self._stop.is_set():
+                wake = self._wait_until(deadline)
+                if self._reset_requested:
+                    self._reset_requested = False
+                    self.consecutive_misses = 0
+                    self.total_misses = 0
+                overrun = (self.consecutive_misses >= self.max_consecutive
+                           or self.total_misses >= self.max_total)
+                body(Tick(self.cycles, deadline, wake, period, self.consecutive_misses,
+                          self.total_misses, overrun))
+                end = clock()
+                this_deadline = deadline
+                deadline += period
+                missed = 0
+                if end > deadline:
+                    missed = (end - deadline) // period + 1
+                    deadline += missed * period
+                    self.consecutive_misses += 1
+                    self.total_misses += missed
+                else:
+                    self.consecutive_misses = 0
+                ring.record(this_deadline, wake - this_deadline, end - wake,
+                            deadline - missed * period - end, missed)
+                self.cycles += 1
+        except BaseException as exc:  # noqa: BLE001 -- stored, re-raised by join()
+            self.error = exc
+            log.error("loop_crashed", error=repr(exc), cycle=self.cycles)
+        finally:
+            self._done.set()
