@@ -1,0 +1,1 @@
+"""Simulation: fakes that speak the real protocols, the simulated plant and the simulated human."""
