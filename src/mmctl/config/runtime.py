@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from mmctl.config.schema import param, section
 
 
@@ -17,6 +19,12 @@ class LoopConfig:
     max_total_misses: int = param(1000, gt=0, doc="total misses since enable -> fault")
     rt_priority: int = param(0, ge=0, le=99, doc="SCHED_FIFO priority; 0 = do not ask")
     cpu_affinity: tuple[int, ...] = param((), doc="CPUs to pin the loop thread to; () = any")
+    switch_interval: float = param(
+        0.0005, unit="s", gt=0.0, le=0.1,
+        doc="Python GIL switch interval of the daemon: how long another thread may keep "
+        "the loop thread waiting for the interpreter",
+    )
+    timing_samples: int = param(8192, gt=1, doc="cycles kept in the timing ring")
 
 
 @section
@@ -36,6 +44,19 @@ class DaemonConfig:
         "", doc="control socket; '' = $RUNTIME_DIRECTORY or $XDG_RUNTIME_DIR or /tmp, + mmctl.sock"
     )
     socket_mode: int = param(0o660, ge=0, le=0o777)
+    ready_timeout: float = param(
+        10.0, unit="s", gt=0.0,
+        doc="READY=1 is sent after the first healthy cycle, or after this long regardless",
+    )
+    command_timeout: float = param(
+        5.0, unit="s", gt=0.0, doc="how long a control command waits for the loop to take it"
+    )
+    switch_input: int = param(
+        -1, ge=-1, le=17,
+        doc="UR digital input (0-7 standard, 8-15 configurable, 16-17 tool) of the handle "
+        "button that toggles manipulation/locomotion in switch mode; -1 = no button",
+    )
+    log_level: Literal["debug", "info", "warning", "error"] = param("info")
 
 
 @section
@@ -54,3 +75,7 @@ class SimConfig:
 
     enabled: bool = param(True, doc="start the fakes (UR controller, sensor, drives, human)")
     human: bool = param(True, doc="a simulated person pushes the handle")
+    auto_enable: bool = param(
+        True, doc="arm the simulated robot after start-up (ignored unless sim.enabled)"
+    )
+    human_seed: int = param(0, ge=0, doc="which simulated person (seeded parameters)")
