@@ -1,0 +1,218 @@
+"""The telemetry publisher: a thread that drains the sample queue into a sink.
+
+The loop thread calls :meth:`Publisher.put` (a bound ``DropQueue.put``: one length test
+and one ``deque.append``; never blocks, counts drops).  The publisher thread wakes
+``scene_rate`` times a second, drains everything queued and hands the sink
+
+* the full-rate columns of every sample (trial-metric inputs),
+* the loop timing of the new cycles, read from the loop's lock-free
+  :class:`~mmctl.runtime.timing.TimingRing` (so timing costs the loop nothing),
+* the plot-rate columns (every ``plot_stride``-th cycle) and the drop counter,
+* one 3-D scene frame (the newest sample) and the queued events,
+
+in one batch.  An exception in the thread is logged, stored in :attr:`Publisher.error`
+and re-raised by :meth:`Publisher.close`; the loop is never affected (the queue just
+fills up and counts drops).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any, Protocol
+
+import numpy as np
+import structlog
+
+from mmctl.telemetry import layout
+from mmctl.telemetry.batch import Columns, full_rate, plot_rate, plot_stride
+from mmctl.telemetry.events import Event
+from mmctl.telemetry.queue import DropQueue
+from mmctl.telemetry.sample import TelemetrySample
+from mmctl.telemetry.scene import SceneFrame
+
+log = structlog.get_logger("mmctl.telemetry")
+
+#: events are rare (trial brackets, state changes); this bounds them anyway
+EVENT_QUEUE_SIZE = 1024
+
+
+class Sink(Protocol):
+    """Where batches go (:class:`~mmctl.telemetry.rerun_sink.RerunSink`, or a test fake)."""
+
+    def open(self) -> None: ...
+    def write_columns(self, columns: list[Columns]) -> None: ...
+    def write_scene(self, cycle: int, t: float, frame: SceneFrame) -> None: ...
+    def write_event(self, event: Event) -> None: ...
+    def close(self) -> None: ...
+
+
+class Scene(Protocol):
+    """Turns a sample into a 3-D frame (:class:`~mmctl.telemetry.scene.SceneBuilder`)."""
+
+    def frame(self, s: TelemetrySample) -> SceneFrame: ...
+
+
+class Publisher:
+    """Bounded queue + publisher thread (see the module docstring).
+
+    sink: where batches go; loop_rate_hz: the control rate [Hz]; plot_rate_hz: rate of
+    the plot-rate series [Hz]; scene_rate_hz: wake-ups per second, one 3-D frame each
+    [Hz]; queue_size: samples held at most; timing: the loop's TimingRing (or None: no
+    timing series); origin_ns: perf_counter_ns of t = 0 (the ``time`` timeline of the
+    timing rows); scene: builds 3-D frames (None: no 3-D view).
+    """
+
+    def __init__(self, sink: Sink, *, loop_rate_hz: float = 500.0, plot_rate_hz: float = 100.0,
+                 scene_rate_hz: float = 30.0, queue_size: int = 4096, timing: Any = None,
+                 origin_ns: int = 0, scene: Scene | None = None):
+        if scene_rate_hz <= 0 or plot_rate_hz <= 0 or loop_rate_hz <= 0:
+            raise ValueError("rates must be > 0")
+        self.sink = sink
+        self.queue: DropQueue[TelemetrySample] = DropQueue(queue_size)
+        self.events: DropQueue[Event] = DropQueue(EVENT_QUEUE_SIZE)
+        self.put = self.queue.put  #: the loop's hot path: put(sample) -> bool, never blocks
+        self.stride = plot_stride(loop_rate_hz, plot_rate_hz)
+        self.wake_period = 1.0 / scene_rate_hz
+        self.timing = timing
+        self.origin_ns = origin_ns
+        self.scene = scene
+        self.error: BaseException | None = None
+        self.published = 0  #: samples handed to the sink
+        self.batches = 0
+        self.flush_ns_max = 0  #: longest flush so far [ns]
+        self._timing_next = -1
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._progress = threading.Condition()
+        self._closed = False
+
+    # -- lifecycle ------------------------------------------------------------------
+    def start(self) -> None:
+        """Open the sink (in the caller: errors surface here) and start the thread."""
+        if self._thread is not None:
+            raise RuntimeError("publisher already started")
+        self.sink.open()
+        if self.timing is not None:
+            self._timing_next = self.timing.count
+        self._thread = threading.Thread(target=self._run, name="mmctl-telemetry", daemon=True)
+        self._thread.start()
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Stop the thread after a last flush, close the sink, re-raise a thread error.
+
+        Idempotent.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        try:
+            self.sink.close()
+        finally:
+            if self.error is not None:
+                raise self.error
+
+    def __enter__(self) -> Publisher:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- producer side (any thread, never blocks) ------------------------------------------
+    def post_event(self, event: Event) -> bool:
+        """Queue an event for the next flush; False if the event queue was full."""
+        return self.events.put(event)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for ``status``: accepted, dropped, published, batches, longest flush."""
+        return {
+            "accepted": self.queue.accepted,
+            "dropped": self.queue.dropped,
+            "queued": len(self.queue),
+            "published": self.published,
+            "batches": self.batches,
+            "flush_max_us": round(self.flush_ns_max / 1e3, 1),
+            "events_dropped": self.events.dropped,
+            "error": repr(self.error) if self.error is not None else None,
+        }
+
+    def wait_published(self, count: int, timeout: float) -> bool:
+        """Block until at least ``count`` samples reached the sink (or the thread died)."""
+        deadline = time.monotonic() + timeout
+        with self._progress:
+            while self.published < count and self.error is None:
+                left = deadline - time.monotonic()
+                if left <= 0 or (self._thread is not None and not self._thread.is_alive()):
+                    return self.published >= count
+                self._progress.wait(min(left, 0.5))
+        return self.published >= count
+
+    # -- the thread ---------------------------------------------------------------------------
+    def _run(self) -> None:
+        try:
+            next_wake = time.monotonic()
+            while True:
+                next_wake += self.wake_period
+                stopping = self._stop.wait(max(0.0, next_wake - time.monotonic()))
+                self.flush()
+                if stopping:
+                    break
+                if time.monotonic() > next_wake + self.wake_period:
+                    next_wake = time.monotonic()  # fell behind: do not burst to catch up
+        except BaseException as exc:  # stored, logged, re-raised by close()
+            self.error = exc
+            log.error("telemetry_publisher_failed", error=repr(exc))
+        finally:
+            with self._progress:
+                self._progress.notify_all()
+
+    def flush(self) -> None:
+        """Drain the queues into the sink once (the thread's body; tests may call it)."""
+        t0 = time.perf_counter_ns()
+        samples = self.queue.drain()
+        columns: list[Columns] = []
+        if samples:
+            columns.append(full_rate(samples))
+            columns.append(plot_rate(samples, self.stride))
+        timing = self._timing_columns()
+        if timing is not None:
+            columns.append(timing)
+        if samples:
+            last = samples[-1]
+            columns.append(Columns(np.array([last.cycle], np.int64),
+                                   columns[0].time_ns[-1:].copy(),
+                                   {layout.DROPPED.path: np.array([[float(self.queue.dropped)]])}))
+        self.sink.write_columns(columns)
+        for event in self.events.drain():
+            self.sink.write_event(event)
+        if samples and self.scene is not None:
+            last = samples[-1]
+            self.sink.write_scene(last.cycle, last.t, self.scene.frame(last))
+        self.batches += 1
+        with self._progress:
+            self.published += len(samples)
+            self._progress.notify_all()
+        self.flush_ns_max = max(self.flush_ns_max, time.perf_counter_ns() - t0)
+
+    def _timing_columns(self) -> Columns | None:
+        ring = self.timing
+        if ring is None:
+            return None
+        new = ring.count - self._timing_next
+        if new <= 0:
+            return None
+        snap = ring.snapshot(last=new)
+        n = len(snap)
+        self._timing_next = snap.first_index + n
+        if n == 0:
+            return None
+        cycle = np.arange(snap.first_index, snap.first_index + n, dtype=np.int64)
+        values = np.empty((n, 3))
+        values[:, 0] = snap.compute_ns * 1e-3
+        values[:, 1] = snap.slack_ns * 1e-3
+        values[:, 2] = snap.latency_ns * 1e-3
+        return Columns(cycle, snap.deadline_ns - self.origin_ns, {layout.LOOP_TIMING.path: values})

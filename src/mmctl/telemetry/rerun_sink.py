@@ -1,0 +1,277 @@
+"""The rerun side of the publisher: the only module that logs to rerun.
+
+rerun is imported in :meth:`RerunSink.open`, never at module import, so a daemon with
+telemetry off never loads it.  Column data goes out as ``rerun.chunk.Chunk``s built
+straight from numpy/pyarrow arrays and sent together with one ``send_chunks`` call per
+flush (about 40 us per entity, a third of ``rr.send_columns`` with archetype
+helpers); the 3-D scene and events use ``RecordingStream.log``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import structlog
+
+from mmctl.config.base import MecanumConfig
+from mmctl.errors import MmctlError
+from mmctl.telemetry import layout
+from mmctl.telemetry.batch import Columns, time_ns
+from mmctl.telemetry.events import Event
+from mmctl.telemetry.scene import SceneFrame, footprint_box
+
+log = structlog.get_logger("mmctl.telemetry")
+
+DEFAULT_VIEWER_PORT = 9876
+DEFAULT_URL = f"rerun+http://127.0.0.1:{DEFAULT_VIEWER_PORT}/proxy"
+
+
+class TelemetryError(MmctlError):
+    """A telemetry destination could not be opened (viewer, address, file)."""
+
+
+class Destinations(NamedTuple):
+    """Where telemetry goes; several at once are fine.
+
+    viewer: spawn a local rerun viewer (bound to 127.0.0.1) and stream to it;
+    connect: address of a running viewer (``HOST:PORT``, ``PORT`` or a ``rerun+http://``
+    URL; "" = the loopback default) or None; record: ``.rrd`` path or None.
+    """
+
+    viewer: bool = False
+    connect: str | None = None
+    record: str | None = None
+
+    @property
+    def any(self) -> bool:
+        return self.viewer or self.connect is not None or self.record is not None
+
+
+def grpc_url(address: str) -> str:
+    """``HOST:PORT`` / ``PORT`` / URL -> the viewer's gRPC proxy URL (loopback default)."""
+    a = address.strip()
+    if not a:
+        return DEFAULT_URL
+    if "://" in a:
+        return a
+    if a.isdigit():
+        return f"rerun+http://127.0.0.1:{a}/proxy"
+    host, sep, port = a.rpartition(":")
+    if not sep or not port.isdigit():
+        raise TelemetryError(f"--connect {address!r}: expected HOST:PORT, PORT or a "
+                             "rerun+http://HOST:PORT/proxy URL")
+    return f"rerun+http://{host or '127.0.0.1'}:{port}/proxy"
+
+
+def rerun_executable() -> str:
+    """The ``rerun`` viewer binary: next to this Python (the venv), else on PATH."""
+    here = Path(sys.executable).parent / "rerun"
+    if here.exists():
+        return str(here)
+    found = shutil.which("rerun")
+    if found is None:
+        raise TelemetryError("the rerun viewer executable was not found (pip install rerun-sdk)")
+    return found
+
+
+def spawn_viewer(port: int = DEFAULT_VIEWER_PORT, timeout: float = 15.0) -> subprocess.Popen[bytes]:
+    """Start a detached rerun viewer listening on 127.0.0.1:``port``; wait until it does.
+
+    Raises :class:`TelemetryError` if it exits first (e.g. no display) or never listens.
+    """
+    cmd = [rerun_executable(), "--port", str(port), "--bind", "127.0.0.1"]
+    env = dict(os.environ, RERUN_APP_ONLY="true")
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, env=env, start_new_session=True)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+            last = next((ln for ln in reversed(err.splitlines()) if ln.strip()), "")
+            raise TelemetryError(f"the rerun viewer exited at start ({last.strip() or proc.returncode}); "
+                                 "without a display use --record FILE.rrd or --connect ADDR")
+        with socket.socket() as s:
+            s.settimeout(0.2)
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return proc
+        time.sleep(0.1)
+    proc.terminate()
+    raise TelemetryError(f"the rerun viewer did not listen on 127.0.0.1:{port} within {timeout:g} s")
+
+
+class _Column:
+    """A ready-made component column (duck-types ``rerun.ComponentColumn``)."""
+
+    __slots__ = ("_desc", "_array")
+
+    def __init__(self, desc: Any, array: Any):
+        self._desc = desc
+        self._array = array
+
+    def component_descriptor(self) -> Any:
+        return self._desc
+
+    def as_arrow_array(self) -> Any:
+        return self._array
+
+
+class _Index:
+    """A ready-made index column (a ``rerun.TimeColumnLike``)."""
+
+    __slots__ = ("_name", "_array")
+
+    def __init__(self, name: str, array: Any):
+        self._name = name
+        self._array = array
+
+    def timeline_name(self) -> str:
+        return self._name
+
+    def as_arrow_array(self) -> Any:
+        return self._array
+
+
+class RerunSink:
+    """Logs columns, scene frames and events to one rerun recording stream.
+
+    destinations: where the stream goes; recording_name: a label shown by the viewer;
+    static: name -> value logged once under ``telemetry/info`` (rates, period...);
+    mecanum: base geometry for the drawn footprint.  Call :meth:`open` first (imports
+    rerun, opens the sinks); :meth:`close` flushes and is idempotent.
+    """
+
+    def __init__(self, destinations: Destinations, recording_name: str = "mmctl",
+                 static: dict[str, float | int | str] | None = None,
+                 mecanum: MecanumConfig | None = None):
+        self.destinations = destinations
+        self.recording_name = recording_name
+        self.static = dict(static or {})
+        self.mecanum = mecanum if mecanum is not None else MecanumConfig()
+        self.viewer: subprocess.Popen[bytes] | None = None
+        self._rec: Any = None
+        self._rr: Any = None
+        self._pa: Any = None
+        self._chunk: Any = None
+        self._desc: Any = None
+        self._path: list[np.ndarray] = []
+
+    # -- lifecycle ------------------------------------------------------------------
+    def open(self) -> None:
+        """Import rerun, open the destinations, log the static parts and the blueprint."""
+        import pyarrow as pa
+        import rerun as rr
+        from rerun.chunk import Chunk
+
+        self._rr, self._pa, self._chunk = rr, pa, Chunk
+        d = self.destinations
+        sinks: list[Any] = []
+        if d.record is not None:
+            Path(d.record).expanduser().parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(Path(d.record).expanduser())))
+        if d.viewer:
+            self.viewer = spawn_viewer()
+            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{DEFAULT_VIEWER_PORT}/proxy"))
+        if d.connect is not None:
+            url = grpc_url(d.connect)
+            if d.viewer and url.endswith(f":{DEFAULT_VIEWER_PORT}/proxy"):
+                url = ""  # the spawned viewer already gets the stream
+            if url:
+                sinks.append(rr.GrpcSink(url))
+        rec = rr.RecordingStream("mmctl", recording_id=None, send_properties=True)
+        if sinks:
+            rec.set_sinks(*sinks, default_blueprint=layout.blueprint())
+        self._rec = rec
+        rec.send_recording_name(self.recording_name)
+        self._desc = next(iter(rr.Scalars.columns(scalars=np.zeros((1, 1))))).component_descriptor()
+        self._log_static()
+
+    def close(self) -> None:
+        """Flush everything to the destinations and close them (idempotent)."""
+        rec, self._rec = self._rec, None
+        if rec is None:
+            return
+        try:
+            rec.flush(timeout_sec=10.0)
+        finally:
+            rec.disconnect()
+
+    # -- what the publisher calls -------------------------------------------------------
+    def write_columns(self, columns: Sequence[Columns]) -> None:
+        """Send several column batches as chunks in one call (empty ones are skipped)."""
+        pa, chunk_cls, desc = self._pa, self._chunk, self._desc
+        chunks = []
+        for cols in columns:
+            n = len(cols)
+            if n == 0:
+                continue
+            index = [_Index(layout.TIMELINE_CYCLE, pa.array(cols.cycle, pa.int64())),
+                     _Index(layout.TIMELINE_TIME,
+                            pa.array(cols.time_ns.astype("timedelta64[ns]"), pa.duration("ns")))]
+            for path, values in cols.values.items():
+                k = values.shape[1]
+                offsets = pa.array(np.arange(0, n * k + 1, k, dtype=np.int32))
+                arr = pa.ListArray.from_arrays(offsets, pa.array(values.reshape(-1)))
+                chunks.append(chunk_cls.from_columns(path, index, [_Column(desc, arr)]))
+        if chunks:
+            self._rec.send_chunks(chunks)
+
+    def write_scene(self, cycle: int, t: float, frame: SceneFrame) -> None:
+        """Log one 3-D frame at ``cycle`` / ``t`` [s]."""
+        rr, rec = self._rr, self._rec
+        self._set_time(cycle, t)
+        rec.log(layout.BASE, rr.Transform3D(translation=frame.base_translation,
+                                            quaternion=frame.base_quaternion))
+        rec.log(layout.ARM, rr.LineStrips3D([frame.arm_points], radii=0.03,
+                                            colors=[(90, 150, 230)]))
+        rec.log(layout.ARM_JOINTS, rr.Points3D(frame.arm_points, radii=0.045,
+                                               colors=[(40, 60, 90)]))
+        rec.log(layout.HANDLE, rr.Transform3D(translation=frame.handle_translation,
+                                              quaternion=frame.handle_quaternion))
+        origin = [frame.handle_translation]
+        rec.log(layout.TWIST_ARROW, rr.Arrows3D(vectors=[frame.twist_vector], origins=origin,
+                                                colors=[(40, 200, 80)], radii=0.01))
+        rec.log(layout.FORCE_ARROW, rr.Arrows3D(vectors=[frame.force_vector], origins=origin,
+                                                colors=[(230, 60, 60)], radii=0.01))
+        rec.log(layout.P_DES, rr.Points3D([frame.p_des], radii=0.03, colors=[(240, 180, 0)]))
+        self._path.append(frame.base_translation)
+        if len(self._path) > 600:
+            del self._path[:100]
+        if len(self._path) >= 2:
+            rec.log(layout.BASE_PATH, rr.LineStrips3D([np.array(self._path)], radii=0.01,
+                                                      colors=[(150, 150, 150)]))
+
+    def write_event(self, event: Event) -> None:
+        """Log a text line and/or a row of named values at the event's cycle."""
+        rr, rec = self._rr, self._rec
+        self._set_time(event.cycle, event.t)
+        if event.text:
+            rec.log(layout.EVENTS, rr.TextLog(event.text, level=event.level))
+        if event.values:
+            rec.log(event.entity, rr.AnyValues(**dict(event.values)))
+
+    # -- internals ------------------------------------------------------------------------
+    def _set_time(self, cycle: int, t: float) -> None:
+        rec = self._rec
+        rec.set_time(layout.TIMELINE_CYCLE, sequence=int(cycle))
+        rec.set_time(layout.TIMELINE_TIME, duration=np.timedelta64(int(time_ns([t])[0]), "ns"))
+
+    def _log_static(self) -> None:
+        rr, rec = self._rr, self._rec
+        for s in layout.ALL_SERIES:
+            rec.log(s.path, rr.SeriesLines(names=list(s.names), widths=1.5), static=True)
+        rec.log(layout.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        center, half = footprint_box(self.mecanum)
+        rec.log(layout.BASE_FOOTPRINT, rr.Boxes3D(centers=[center], half_sizes=[half],
+                                                  colors=[(120, 120, 120)]), static=True)
+        rec.log(layout.HANDLE, rr.TransformAxes3D(0.15), static=True)
+        if self.static:
+            rec.log("telemetry/info", rr.AnyValues(**self.static), static=True)
