@@ -24,7 +24,9 @@ COMMANDS: list[tuple[str, str, str]] = [
 #: group -> (help, [(sub-command, module, one-line help)])
 GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
     "bench": ("benchmarks that print figures", []),
-    "probe": ("bring-up probes for one device", []),
+    "probe": ("bring-up probes for one device", [
+        ("sensor", "mmctl.commands.probe_sensor", "read the force/torque sensor, print the wrench"),
+    ]),
 }
 
 

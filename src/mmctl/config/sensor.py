@@ -16,6 +16,13 @@ class SensorCanConfig:
     bitrate: int = param(1_000_000, gt=0, unit="bit/s")
     base_id: int = param(0x20, ge=0, le=0x7F, doc="CAN base id; frame id = (base_id << 4) | opcode")
     timeout: float = param(0.005, unit="s", gt=0.0, doc="reply timeout of one read")
+    connect_timeout: float = param(
+        0.5, unit="s", gt=0.0, doc="reply timeout of the calibration reads at connect"
+    )
+    status_saturation_mask: int = param(
+        0x0006, ge=0, le=0xFFFF,
+        doc="status bits meaning gauge saturation (any other set bit is a status fault)",
+    )
 
 
 @section
@@ -26,6 +33,13 @@ class SensorRdtConfig:
     port: int = param(49152, gt=0, le=65535)
     counts_per_force: float = param(1.0e6, gt=0.0, unit="counts/N")
     counts_per_torque: float = param(1.0e6, gt=0.0, unit="counts/(N m)")
+    connect_timeout: float = param(0.5, unit="s", gt=0.0, doc="wait for the first record")
+    status_error_mask: int = param(
+        0x80000000, ge=0, le=0xFFFFFFFF, doc="status bits that are a status fault"
+    )
+    status_saturation_mask: int = param(
+        0x00020000, ge=0, le=0xFFFFFFFF, doc="status bits meaning gauge saturation"
+    )
 
 
 @section
@@ -47,6 +61,14 @@ class WrenchConfig:
     force_limit: float = param(150.0, unit="N", gt=0.0, doc="|f| above this is a fault")
     torque_limit: float = param(15.0, unit="N m", gt=0.0, doc="|t| above this is a fault")
     stale_timeout: float = param(0.010, unit="s", gt=0.0, doc="no new sample for longer: fault")
+    range_force: tuple[float, ...] = param(
+        (500.0, 500.0, 900.0), unit="N", shape=(3,), gt=0.0,
+        doc="sensing range |Fx|, |Fy|, |Fz| (ATI Axia80 M20); beyond it: saturation fault",
+    )
+    range_torque: tuple[float, ...] = param(
+        (20.0, 20.0, 20.0), unit="N m", shape=(3,), gt=0.0,
+        doc="sensing range |Tx|, |Ty|, |Tz| (ATI Axia80 M20); beyond it: saturation fault",
+    )
 
 
 @section

@@ -1,0 +1,1 @@
+"""Hardware transports: one subpackage per device, one module per wire protocol."""

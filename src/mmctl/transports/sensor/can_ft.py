@@ -1,0 +1,390 @@
+"""ATI force/torque sensor on CAN (the Net F/T CAN layout), over any python-can interface.
+
+Wire protocol (what this client sends and expects; all frames 11-bit standard ids,
+``id = (base_id << 4) | opcode``, default base 0x20 -> ids 0x200..0x20F; integers and
+floats big-endian, as ATI's CAN layout sends them):
+
+============  =====================================  ==========================================
+opcode        request (client -> sensor)             reply (sensor -> client)
+============  =====================================  ==========================================
+0x0 gauges    id base|0x0, DLC 0                     id base|0x0, DLC 8: int16 status, int16 sg0,
+                                                     int16 sg2, int16 sg4; then id base|0x1,
+                                                     DLC 6: int16 sg1, sg3, sg5 (DLC 7-8
+                                                     accepted, extra bytes ignored)
+0x2 matrix    id base|0x2, DLC 1: uint8 row          three frames id base|0x2, DLC 8, each two
+              (0 Fx, 1 Fy, 2 Fz, 3 Tx, 4 Ty, 5 Tz)   float32: (c[r][0], c[r][1]), (c[r][2],
+                                                     c[r][3]), (c[r][4], c[r][5])
+0x7 counts    id base|0x7, DLC 0                     id base|0x7, DLC 8: uint32 counts per force
+                                                     unit, uint32 counts per torque unit
+0x8 units     id base|0x8, DLC 0                     id base|0x8, DLC 2: uint8 force unit,
+                                                     uint8 torque unit (ATI codes: 2 = N,
+                                                     3 = N m; anything else is refused)
+============  =====================================  ==========================================
+
+Conversion: ``w = diag(1/cpf, 1/cpf, 1/cpf, 1/cpt, 1/cpt, 1/cpt) C sg`` with ``C`` the 6x6
+calibration matrix (row r = output axis), ``sg`` the six gauges.  The sensor has no bias
+of its own on this link: :meth:`CanForceSensor.tare` is a software bias (mean of
+``sensor.wrench.tare_samples`` samples).  Frames on our ids that have the *request's*
+length are another master's requests and are ignored; frames of our reply ids with any
+other unexpected length are a :class:`~mmctl.errors.ProtocolError`.
+
+Status word (uint16, 0 = healthy): 0x4000 is ATI's CAN bus error; the bits in
+``sensor.can.status_saturation_mask`` (default 0x0006, our reading of ATI's "ADC too
+high / too low" bits — set it from your unit's manual) and any gauge at the int16 rail
+(-32768 or 32767) raise ``SafetyFault(SENSOR_SATURATION)``; any other set bit raises
+``SafetyFault(SENSOR_STATUS)``.
+
+Timing (why a read is cheap): reads are *pipelined*.  After a reply is decoded, the next
+request goes out at once, so the sensor answers while the control cycle computes and the
+next :meth:`CanForceSensor.read` normally finds both reply frames already queued (the
+sample is then up to one period old, 2 ms at 500 Hz, against a 53 ms admittance time
+constant).  When the request in flight is older than ``sensor.can.timeout`` (the caller
+paused), its reply would be too old: it is discarded and a fresh request is waited for.
+A request that gets no complete reply within ``timeout`` counts as lost; the previous
+sample is returned again until the newest one is older than
+``sensor.wrench.stale_timeout``, then ``SafetyFault(SENSOR_STALE)`` is raised.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Sequence
+from types import TracebackType
+from typing import TYPE_CHECKING
+
+import can
+import numpy as np
+import structlog
+
+from mmctl.config.sensor import SensorCanConfig
+from mmctl.errors import FaultCause, ProtocolError, SafetyFault, TransportError
+from mmctl.transports.sensor.protocol import SensorStats
+from mmctl.types import Vec, Wrench
+
+if TYPE_CHECKING:  # typing.Self is 3.11+; the package supports 3.10
+    from typing import Self
+
+log = structlog.get_logger("mmctl.sensor.can")
+
+OP_GAUGES = 0x0
+OP_GAUGES_2 = 0x1
+OP_MATRIX = 0x2
+OP_COUNTS = 0x7
+OP_UNITS = 0x8
+
+STATUS_BUS_ERROR = 0x4000
+UNIT_NEWTON = 2
+UNIT_NEWTON_METRE = 3
+GAUGE_RAILS = (-32768, 32767)
+
+_FIRST = struct.Struct(">hhhh")
+_SECOND = struct.Struct(">hhh")
+_TWO_FLOATS = struct.Struct(">ff")
+_COUNTS = struct.Struct(">II")
+_ID_MASK = 0x7F0
+
+
+def frame_id(base_id: int, opcode: int) -> int:
+    """The 11-bit CAN id of ``opcode`` for a sensor at ``base_id``."""
+    return ((base_id << 4) | opcode) & 0x7FF
+
+
+def decode_gauges(first: bytes, second: bytes) -> tuple[int, Vec]:
+    """The two gauge frames -> (status word uint16, gauges (6,) sg0..sg5 [counts])."""
+    if len(first) != 8:
+        raise ProtocolError(f"gauge frame 1 must have 8 data bytes, got {len(first)}")
+    if not 6 <= len(second) <= 8:
+        raise ProtocolError(f"gauge frame 2 must have 6 data bytes, got {len(second)}")
+    status, sg0, sg2, sg4 = _FIRST.unpack(first)
+    sg1, sg3, sg5 = _SECOND.unpack_from(second)
+    return status & 0xFFFF, np.array((sg0, sg1, sg2, sg3, sg4, sg5), dtype=np.float64)
+
+
+def decode_matrix_row(frames: Sequence[bytes]) -> tuple[float, ...]:
+    """The three frames answering a matrix-row request -> the row's 6 coefficients."""
+    if len(frames) != 3 or any(len(f) != 8 for f in frames):
+        lengths = [len(f) for f in frames]
+        raise ProtocolError(f"a matrix row is 3 frames of 8 bytes, got lengths {lengths}")
+    row = tuple(v for f in frames for v in _TWO_FLOATS.unpack(f))
+    if not all(np.isfinite(row)):
+        raise ProtocolError(f"calibration matrix row is not finite: {row}")
+    return row
+
+
+def decode_counts(data: bytes) -> tuple[int, int]:
+    """The counts-per-unit reply -> (counts per force unit, counts per torque unit)."""
+    if len(data) != 8:
+        raise ProtocolError(f"counts-per-unit reply must have 8 bytes, got {len(data)}")
+    cpf, cpt = _COUNTS.unpack(data)
+    if cpf == 0 or cpt == 0:
+        raise ProtocolError(f"counts per unit must be > 0, got force {cpf}, torque {cpt}")
+    return cpf, cpt
+
+
+def decode_units(data: bytes) -> tuple[int, int]:
+    """The unit-codes reply -> (force unit code, torque unit code); only N and N m pass."""
+    if len(data) < 2:
+        raise ProtocolError(f"unit-codes reply must have 2 bytes, got {len(data)}")
+    force_unit, torque_unit = data[0], data[1]
+    if (force_unit, torque_unit) != (UNIT_NEWTON, UNIT_NEWTON_METRE):
+        raise ProtocolError(
+            f"sensor reports unit codes force={force_unit}, torque={torque_unit}; mmctl needs "
+            f"N ({UNIT_NEWTON}) and N m ({UNIT_NEWTON_METRE}): reconfigure the sensor"
+        )
+    return force_unit, torque_unit
+
+
+def conversion_matrix(calibration: Sequence[Sequence[float]], cpf: float, cpt: float) -> Vec:
+    """(6, 6) gauges -> wrench [N, N m]: ``diag(1/cpf x3, 1/cpt x3) @ calibration``."""
+    c = np.asarray(calibration, dtype=np.float64)
+    if c.shape != (6, 6) or not np.all(np.isfinite(c)):
+        raise ProtocolError(f"calibration matrix must be a finite 6x6, got shape {c.shape}")
+    scale = np.array((cpf,) * 3 + (cpt,) * 3, dtype=np.float64)
+    return c / scale[:, None]
+
+
+def check_status(status: int, gauges: Vec, saturation_mask: int) -> None:
+    """Raise SafetyFault(SENSOR_SATURATION / SENSOR_STATUS) if the sample is not healthy."""
+    if status & saturation_mask or gauges.min() <= GAUGE_RAILS[0] or gauges.max() >= GAUGE_RAILS[1]:
+        raise SafetyFault(FaultCause.SENSOR_SATURATION, status=hex(status))
+    if status:
+        raise SafetyFault(
+            FaultCause.SENSOR_STATUS, status=hex(status), bus_error=bool(status & STATUS_BUS_ERROR)
+        )
+
+
+class CanForceSensor:
+    """:class:`~mmctl.transports.sensor.protocol.ForceSensor` on CAN (see module doc).
+
+    cfg: the ``sensor.can`` section; stale_timeout: no fresh sample for longer -> fault
+    [s]; tare_samples: samples averaged by :meth:`tare`.  No I/O before :meth:`connect`.
+    """
+
+    def __init__(self, cfg: SensorCanConfig, *, stale_timeout: float = 0.010,
+                 tare_samples: int = 100) -> None:
+        self._cfg = cfg
+        self._stale = stale_timeout
+        self._tare_n = tare_samples
+        self._timeout = cfg.timeout
+        self._sat_mask = cfg.status_saturation_mask
+        self._id_g0 = frame_id(cfg.base_id, OP_GAUGES)
+        self._id_g1 = frame_id(cfg.base_id, OP_GAUGES_2)
+        self._request = can.Message(arbitration_id=self._id_g0, data=b"", is_extended_id=False)
+        self._bus: can.BusABC | None = None
+        self._conv = np.zeros((6, 6))
+        self._calibration = np.zeros((6, 6))
+        self._counts = (0, 0)
+        self._bias = np.zeros(6)
+        self._pending: float | None = None  # monotonic time the request in flight was sent
+        self._first: bytes | None = None  # gauge frame 1 waiting for frame 2
+        self._last: Wrench | None = None
+        self._last_fresh = 0.0
+        self._seq = 0
+        self._lost = 0
+
+    @property
+    def link(self) -> str:
+        """Where the sensor is expected, for messages: ``interface:channel@0xBASE``."""
+        return f"{self._cfg.interface}:{self._cfg.channel}@0x{self._cfg.base_id:02X}"
+
+    @property
+    def calibration(self) -> Vec:
+        """The (6, 6) calibration matrix read at connect (gauges -> counts)."""
+        return self._calibration.copy()
+
+    @property
+    def counts_per_unit(self) -> tuple[int, int]:
+        """(counts per N, counts per N m) read at connect."""
+        return self._counts
+
+    # -- lifecycle ---------------------------------------------------------------------
+
+    def connect(self) -> None:
+        """Open the bus, read units, counts per unit and the matrix, take a first sample."""
+        if self._bus is not None:
+            return
+        cfg = self._cfg
+        try:
+            self._bus = can.Bus(
+                interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate,
+                can_filters=[{"can_id": cfg.base_id << 4, "can_mask": _ID_MASK, "extended": False}],
+            )
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            raise TransportError(f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}") from exc
+        try:
+            decode_units(self._transact(OP_UNITS, b"", 1)[0])
+            cpf, cpt = decode_counts(self._transact(OP_COUNTS, b"", 1)[0])
+            rows = [decode_matrix_row(self._transact(OP_MATRIX, bytes((r,)), 3)) for r in range(6)]
+            self._counts = (cpf, cpt)
+            self._calibration = np.array(rows, dtype=np.float64)
+            self._conv = conversion_matrix(rows, cpf, cpt)
+            self._seq = self._lost = 0
+            self._pending = None
+            self._first = None
+            self._last = None
+            first = self._read_sync(cfg.connect_timeout)
+        except BaseException:
+            self.close()
+            raise
+        self._last = first
+        log.info("sensor_connected", transport="can", link=self.link,
+                 counts_per_force=cpf, counts_per_torque=cpt)
+
+    def close(self) -> None:
+        """Shut the bus down; safe to call twice."""
+        bus, self._bus = self._bus, None
+        self._pending = None
+        if bus is not None:
+            bus.shutdown()
+
+    def __enter__(self) -> Self:
+        self.connect()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    # -- data --------------------------------------------------------------------------
+
+    def read(self) -> Wrench:
+        """The newest wrench [N, N m] in the sensor frame (pipelined, see module doc)."""
+        if self._bus is None:
+            raise TransportError(f"CAN F/T sensor {self.link} is not connected")
+        now = time.monotonic()
+        if self._pending is None or now - self._pending > self._timeout:
+            self._discard_queued()
+            self._send_request(now)
+        sample = self._collect(self._pending + self._timeout)  # type: ignore[operator]
+        if sample is None:
+            self._lost += 1
+            self._pending = None
+            age = time.monotonic() - self._last_fresh
+            if age > self._stale or self._last is None:
+                raise SafetyFault(FaultCause.SENSOR_STALE, age_ms=round(age * 1e3, 2),
+                                  lost=self._lost, link=self.link)
+            return self._last
+        return self._accept(sample)
+
+    def tare(self) -> None:
+        """Software bias: the mean of ``tare_samples`` fresh samples becomes the zero."""
+        n = self._tare_n
+        acc = np.zeros(6)
+        got = 0
+        seq = -1
+        deadline = time.monotonic() + self._cfg.connect_timeout + 4.0 * n * self._timeout
+        while got < n:
+            w = self.read()
+            if w.sequence != seq:
+                seq = w.sequence
+                acc += w.as_array() + self._bias
+                got += 1
+            if time.monotonic() > deadline:
+                raise TransportError(f"tare: only {got}/{n} samples from {self.link}")
+        self._bias = acc / n
+        log.info("sensor_tared", transport="can", bias=self._bias.round(4).tolist())
+
+    def stats(self) -> SensorStats:
+        """Fresh samples and lost requests since connect."""
+        return SensorStats(self._seq, self._lost, 0)
+
+    # -- internals ---------------------------------------------------------------------
+
+    def _accept(self, sample: tuple[int, Vec]) -> Wrench:
+        status, gauges = sample
+        t = time.monotonic()
+        self._send_request(t)  # pipeline: the sensor answers while the cycle computes
+        check_status(status, gauges, self._sat_mask)
+        w = self._conv @ gauges - self._bias
+        self._seq += 1
+        wrench = Wrench(w[:3], w[3:], t, self._seq, status)
+        self._last = wrench
+        self._last_fresh = t
+        return wrench
+
+    def _read_sync(self, timeout: float) -> Wrench:
+        self._discard_queued()
+        self._send_request(time.monotonic())
+        sample = self._collect(time.monotonic() + timeout)
+        if sample is None:
+            raise TransportError(
+                f"no gauge reply from the F/T sensor {self.link} within {timeout * 1e3:.0f} ms"
+            )
+        return self._accept(sample)
+
+    def _send(self, msg: can.Message) -> None:
+        try:
+            self._bus.send(msg)  # type: ignore[union-attr]
+        except can.CanError as exc:
+            raise TransportError(f"CAN send to {self.link} failed: {exc}") from exc
+
+    def _send_request(self, now: float) -> None:
+        self._send(self._request)
+        self._pending = now
+
+    def _recv(self, timeout: float) -> can.Message | None:
+        try:
+            return self._bus.recv(timeout)  # type: ignore[union-attr]
+        except can.CanError as exc:
+            raise TransportError(f"CAN receive from {self.link} failed: {exc}") from exc
+
+    def _discard_queued(self) -> None:
+        while self._recv(0.0) is not None:
+            pass
+        self._first = None
+
+    def _collect(self, deadline: float) -> tuple[int, Vec] | None:
+        """Wait until ``deadline`` for a complete gauge reply, then take the newest queued."""
+        newest: tuple[int, Vec] | None = None
+        timeout = max(0.0, deadline - time.monotonic())
+        try:
+            while True:
+                msg = self._recv(timeout)
+                if msg is None:
+                    return newest
+                got = self._feed(msg)
+                if got is not None:
+                    newest = got
+                timeout = 0.0 if newest is not None else max(0.0, deadline - time.monotonic())
+        except ProtocolError:
+            self._pending = None
+            self._first = None
+            raise
+
+    def _feed(self, msg: can.Message) -> tuple[int, Vec] | None:
+        aid = msg.arbitration_id
+        if aid == self._id_g0:
+            if msg.dlc == 0:
+                return None  # another master's request
+            if msg.dlc != 8:
+                raise ProtocolError(f"gauge frame 1 (id 0x{aid:03X}) has DLC {msg.dlc}, expected 8")
+            self._first = bytes(msg.data)
+            return None
+        if aid == self._id_g1:
+            if self._first is None:
+                raise ProtocolError(f"gauge frame 2 (id 0x{aid:03X}) arrived without frame 1")
+            first, self._first = self._first, None
+            return decode_gauges(first, bytes(msg.data))
+        return None  # late calibration replies, other opcodes
+
+    def _transact(self, opcode: int, payload: bytes, n_replies: int) -> list[bytes]:
+        """Request/response used at connect; replies are the frames on the same id."""
+        fid = frame_id(self._cfg.base_id, opcode)
+        timeout = self._cfg.connect_timeout
+        self._discard_queued()
+        self._send(can.Message(arbitration_id=fid, data=payload, is_extended_id=False))
+        frames: list[bytes] = []
+        deadline = time.monotonic() + timeout
+        while len(frames) < n_replies:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0.0:
+                raise TransportError(
+                    f"no reply from the F/T sensor {self.link} to opcode 0x{opcode:X} "
+                    f"(CAN id 0x{fid:03X}) within {timeout * 1e3:.0f} ms"
+                )
+            msg = self._recv(remaining)
+            if msg is None or msg.arbitration_id != fid or msg.dlc == len(payload):
+                continue  # timeout slice, other ids, or a request (ours is never echoed)
+            frames.append(bytes(msg.data))
+        return frames

@@ -1,0 +1,284 @@
+"""ATI force/torque sensor over Ethernet: RDT (Raw Data Transfer) on UDP, port 49152.
+
+Wire protocol (big-endian):
+
+* request, client -> sensor, 8 bytes: ``uint16 0x1234, uint16 command, uint32 count``;
+  command 0x0002 starts streaming ``count`` records (0 = until stopped), 0x0000 stops,
+  0x0042 sets the device's software bias (the current load reads zero afterwards).
+* record, sensor -> client, 36 bytes: ``uint32 rdt_sequence, uint32 ft_sequence,
+  uint32 status, int32 Fx, Fy, Fz, Tx, Ty, Tz [counts]``; force = counts /
+  counts-per-force, torque = counts / counts-per-torque (``sensor.rdt``).
+
+Status: bits in ``sensor.rdt.status_saturation_mask`` raise
+``SafetyFault(SENSOR_SATURATION)``, bits in ``status_error_mask`` (default bit 31, the
+device's error summary) raise ``SafetyFault(SENSOR_STATUS)``; other bits are reported in
+``Wrench.status`` and otherwise ignored.  A datagram that is not 36 bytes raises
+:class:`~mmctl.errors.ProtocolError`.
+
+Why no reader thread: :meth:`RdtForceSensor.read` drains the non-blocking socket each
+call (a few ``recv_into`` of 36 bytes, ~µs each) and keeps the newest record.  The kernel
+socket buffer does the queueing a thread would do, every record still passes through
+the lost / out-of-order counters, nothing competes with the control loop for the GIL,
+and there is no lock and no thread error to carry across.  A read never blocks: if no
+record arrived since the last one the previous sample is returned again, until it is
+older than ``sensor.wrench.stale_timeout`` -> ``SafetyFault(SENSOR_STALE)``.
+
+Sequence counting (:class:`SequenceTracker`): the RDT sequence is uint32 (wraps).  A
+record ahead of the newest by ``d`` counts ``d - 1`` lost and remembers the missing
+numbers (the last 256); a record at or behind the newest counts one out-of-order, is
+discarded, and if it fills a remembered gap the lost count goes back down by one.
+"""
+
+from __future__ import annotations
+
+import select
+import socket
+import struct
+import time
+from collections import OrderedDict
+from types import TracebackType
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+import structlog
+
+from mmctl.config.sensor import SensorRdtConfig
+from mmctl.errors import FaultCause, ProtocolError, SafetyFault, TransportError
+from mmctl.transports.sensor.protocol import SensorStats
+from mmctl.types import Wrench
+
+if TYPE_CHECKING:  # typing.Self is 3.11+; the package supports 3.10
+    from typing import Self
+
+log = structlog.get_logger("mmctl.sensor.rdt")
+
+RDT_PORT = 49152
+RDT_HEADER = 0x1234
+CMD_STOP = 0x0000
+CMD_START = 0x0002
+CMD_BIAS = 0x0042
+REQUEST = struct.Struct(">HHI")
+RECORD = struct.Struct(">III6i")
+RECORD_SIZE = RECORD.size  # 36
+_SEQ = struct.Struct(">I")
+_WRAP = 1 << 32
+_HALF = 1 << 31
+_MISSING_WINDOW = 256
+_BIAS_SKIP = 2  # records the device may have sent before it processed a bias command
+
+
+def encode_request(command: int, count: int = 0) -> bytes:
+    """The 8-byte RDT request."""
+    return REQUEST.pack(RDT_HEADER, command, count)
+
+
+class RdtRecord(NamedTuple):
+    """One decoded RDT record; counts: (Fx, Fy, Fz, Tx, Ty, Tz) [counts]."""
+
+    rdt_sequence: int
+    ft_sequence: int
+    status: int
+    counts: tuple[int, int, int, int, int, int]
+
+
+def decode_record(data: bytes) -> RdtRecord:
+    """36 bytes -> :class:`RdtRecord`; any other length is a ProtocolError."""
+    if len(data) != RECORD_SIZE:
+        raise ProtocolError(f"RDT record must be {RECORD_SIZE} bytes, got {len(data)}")
+    rdt_seq, ft_seq, status, *counts = RECORD.unpack(data)
+    return RdtRecord(rdt_seq, ft_seq, status, tuple(counts))  # type: ignore[arg-type]
+
+
+class SequenceTracker:
+    """Lost / out-of-order counters from a wrapping uint32 sequence (see module doc)."""
+
+    def __init__(self) -> None:
+        self.newest: int | None = None
+        self.lost = 0
+        self.out_of_order = 0
+        self._missing: OrderedDict[int, None] = OrderedDict()
+
+    def observe(self, seq: int) -> bool:
+        """Account for ``seq``; True when it is newer than every record seen so far."""
+        if self.newest is None:
+            self.newest = seq
+            return True
+        d = (seq - self.newest) % _WRAP
+        if 0 < d < _HALF:
+            self.lost += d - 1
+            for k in range(max(1, d - _MISSING_WINDOW), d):
+                self._missing[(self.newest + k) % _WRAP] = None
+            while len(self._missing) > _MISSING_WINDOW:
+                self._missing.popitem(last=False)
+            self.newest = seq
+            return True
+        self.out_of_order += 1
+        if seq in self._missing:
+            del self._missing[seq]
+            self.lost -= 1
+        return False
+
+
+class RdtForceSensor:
+    """:class:`~mmctl.transports.sensor.protocol.ForceSensor` over RDT/UDP (see module doc).
+
+    cfg: the ``sensor.rdt`` section; stale_timeout: no fresh record for longer -> fault
+    [s].  No I/O before :meth:`connect`.
+    """
+
+    def __init__(self, cfg: SensorRdtConfig, *, stale_timeout: float = 0.010) -> None:
+        self._cfg = cfg
+        self._stale = stale_timeout
+        self._scale = 1.0 / np.array((cfg.counts_per_force,) * 3 + (cfg.counts_per_torque,) * 3)
+        self._sock: socket.socket | None = None
+        self._buf = bytearray(2048)
+        self._tracker = SequenceTracker()
+        self._received = 0
+        self._last: Wrench | None = None
+        self._last_fresh = 0.0
+
+    @property
+    def link(self) -> str:
+        """Where the sensor is expected, for messages: ``udp://host:port``."""
+        return f"udp://{self._cfg.host}:{self._cfg.port}"
+
+    # -- lifecycle ---------------------------------------------------------------------
+
+    def connect(self) -> None:
+        """Open the socket, start streaming, wait for the first record."""
+        if self._sock is not None:
+            return
+        cfg = self._cfg
+        try:
+            addr = socket.getaddrinfo(cfg.host, cfg.port, socket.AF_INET, socket.SOCK_DGRAM)[0][4]
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        except OSError as exc:
+            raise TransportError(f"cannot open {self.link}: {exc}") from exc
+        self._sock = sock
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+            sock.connect(addr)  # only the sensor's datagrams; ICMP errors become exceptions
+            sock.setblocking(False)
+            self._tracker = SequenceTracker()
+            self._received = 0
+            self._last = None
+            self._send(CMD_START)
+            self._wait_records(1, cfg.connect_timeout, resend=CMD_START)
+        except BaseException:
+            self.close()
+            raise
+        log.info("sensor_connected", transport="rdt", link=self.link,
+                 counts_per_force=cfg.counts_per_force, counts_per_torque=cfg.counts_per_torque)
+
+    def close(self) -> None:
+        """Stop streaming (best effort) and close the socket; safe to call twice."""
+        sock, self._sock = self._sock, None
+        if sock is None:
+            return
+        try:
+            sock.send(encode_request(CMD_STOP))
+        except OSError as exc:  # the peer may be gone already; the socket closes anyway
+            log.debug("rdt_stop_not_sent", link=self.link, error=str(exc))
+        finally:
+            sock.close()
+
+    def __enter__(self) -> Self:
+        self.connect()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    # -- data --------------------------------------------------------------------------
+
+    def read(self) -> Wrench:
+        """The newest record as a wrench [N, N m]; never blocks (see module doc)."""
+        if self._sock is None:
+            raise TransportError(f"RDT F/T sensor {self.link} is not connected")
+        fresh = self._drain()
+        if fresh is None:
+            age = time.monotonic() - self._last_fresh
+            if age > self._stale or self._last is None:
+                raise SafetyFault(FaultCause.SENSOR_STALE, age_ms=round(age * 1e3, 2),
+                                  lost=self._tracker.lost, link=self.link)
+            return self._last
+        return fresh
+
+    def tare(self) -> None:
+        """Send the device's bias command and wait until biased records arrive."""
+        if self._sock is None:
+            raise TransportError(f"RDT F/T sensor {self.link} is not connected")
+        self._drain()
+        self._send(CMD_BIAS)
+        self._wait_records(_BIAS_SKIP + 1, self._cfg.connect_timeout)
+        log.info("sensor_tared", transport="rdt", link=self.link)
+
+    def stats(self) -> SensorStats:
+        """Fresh records and the sequence counters since connect."""
+        return SensorStats(self._received, self._tracker.lost, self._tracker.out_of_order)
+
+    # -- internals ---------------------------------------------------------------------
+
+    def _send(self, command: int) -> None:
+        try:
+            self._sock.send(encode_request(command))  # type: ignore[union-attr]
+        except OSError as exc:
+            raise TransportError(f"cannot send to {self.link}: {exc}") from exc
+
+    def _drain(self) -> Wrench | None:
+        """Read every queued datagram; the newest in-order record as a Wrench, or None."""
+        sock = self._sock
+        buf = self._buf
+        tracker = self._tracker
+        newest: bytes | None = None
+        status_or = 0
+        while True:
+            try:
+                n = sock.recv_into(buf)  # type: ignore[union-attr]
+            except BlockingIOError:
+                break
+            except ConnectionRefusedError as exc:
+                raise TransportError(f"nothing answers at {self.link} (connection refused)") from exc
+            except OSError as exc:
+                raise TransportError(f"receive from {self.link} failed: {exc}") from exc
+            if n != RECORD_SIZE:
+                raise ProtocolError(f"RDT datagram of {n} bytes from {self.link}, expected 36")
+            (seq,) = _SEQ.unpack_from(buf, 0)
+            if tracker.observe(seq):
+                newest = bytes(buf[:RECORD_SIZE])
+                status_or |= _SEQ.unpack_from(buf, 8)[0]
+                self._received += 1
+        if newest is None:
+            return None
+        rec = decode_record(newest)
+        t = time.monotonic()
+        cfg = self._cfg
+        if status_or & cfg.status_saturation_mask:
+            raise SafetyFault(FaultCause.SENSOR_SATURATION, status=hex(status_or))
+        if status_or & cfg.status_error_mask:
+            raise SafetyFault(FaultCause.SENSOR_STATUS, status=hex(status_or))
+        w = np.array(rec.counts, dtype=np.float64) * self._scale
+        wrench = Wrench(w[:3], w[3:], t, rec.rdt_sequence, rec.status)
+        self._last = wrench
+        self._last_fresh = t
+        return wrench
+
+    def _wait_records(self, n: int, timeout: float, resend: int | None = None) -> None:
+        """Block until ``n`` fresh records arrived (UDP: resend ``resend`` every 100 ms)."""
+        start = self._received
+        deadline = time.monotonic() + timeout
+        next_resend = time.monotonic() + 0.1
+        while self._received - start < n:
+            now = time.monotonic()
+            if now >= deadline:
+                raise TransportError(
+                    f"nothing answers at {self.link}: {self._received - start}/{n} RDT "
+                    f"records within {timeout * 1e3:.0f} ms"
+                )
+            if resend is not None and now >= next_resend:
+                self._send(resend)
+                next_resend = now + 0.1
+            wake = deadline if resend is None else min(deadline, next_resend)
+            select.select([self._sock], [], [], max(0.0, wake - now))
+            self._drain()
