@@ -57,6 +57,11 @@ class ConstrainedConfig:
 
     max_iter: int = param(200, gt=0, doc="QP solver iteration cap per cycle")
     eps: float = param(1e-6, gt=0.0, doc="QP solver tolerance")
+    task_weight: float = param(
+        1e6, gt=0.0,
+        doc="weight rho of the soft task |J qd - v_d|^2 rho / 2 used when a bound is active "
+        "(keeps the QP feasible; the twist error is ~ |M (qd - qd_null)| / rho)",
+    )
 
 
 @section

@@ -1,0 +1,187 @@
+"""Velocity, acceleration and position limits that keep the direction of ``qdot``.
+
+``qdot`` (9,) = six arm joint rates [rad/s] and the base twist (vx, vy [m/s], wz
+[rad/s]) in the base frame.  :meth:`Limits.apply` runs three stages:
+
+1. **velocity**: ``qdot_v = s_v qdot_d`` with the largest ``s_v`` in [0, 1] such that
+   every joint speed, the base linear speed |(vx, vy)| and yaw rate, every wheel
+   speed (mecanum matrix) and the end-effector linear/angular speed (``J qdot``) are
+   within their limits.  Joint position limits act as direction-dependent speed caps:
+   within ``position_margin`` of a limit the speed *toward* it is capped at
+   ``v_max * distance / margin`` (zero at or beyond the limit); moving away is free.
+2. **acceleration**: ``qdot = qdot_prev + s_a (qdot_v - qdot_prev)`` with the largest
+   ``s_a`` in [0, 1] such that joint and base (linear |a_xy|, angular) accelerations
+   are within limits over ``dt``.  The *change* keeps its direction; starting from
+   rest the result is ``s_a s_v qdot_d`` (direction of ``qdot_d`` kept).  Since every
+   velocity limit is a convex set containing ``qdot_prev`` and ``qdot_v``, the blend
+   stays within the velocity limits.
+3. **final**: stage 1 again on the result, so the velocity and position caps hold
+   even if ``qdot_prev`` was outside them (position braking has priority over the
+   acceleration limit).
+
+Non-finite input gives zero velocity.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmctl.config.base import MecanumConfig
+from mmctl.config.control import LimitsConfig
+from mmctl.control.mecanum import wheel_matrix
+
+Vec = NDArray[np.float64]
+
+_INF = float("inf")
+
+
+class Limited(NamedTuple):
+    """Result of :meth:`Limits.apply`: the limited qdot (9,), the velocity scale s_v,
+    the acceleration blend s_a and the final scale s_f (all in [0, 1])."""
+
+    qdot: Vec
+    scale: float
+    accel_scale: float
+    final_scale: float
+
+
+class Limits:
+    """Joint/wheel/base/end-effector limits (see the module docstring)."""
+
+    def __init__(self, lim: LimitsConfig, mecanum: MecanumConfig) -> None:
+        self.cfg = lim
+        self.v_joint = np.array(lim.joint_velocity)
+        self.a_joint = np.array(lim.joint_acceleration)
+        self.q_min = np.array(lim.joint_position_min)
+        self.q_max = np.array(lim.joint_position_max)
+        self.margin = lim.position_margin
+        self.v_lin = lim.base_linear_velocity
+        self.w_base = lim.base_angular_velocity
+        self.a_lin = lim.base_linear_acceleration
+        self.a_ang = lim.base_angular_acceleration
+        self.wheel = lim.wheel_velocity
+        self.ee_lin = lim.ee_linear_velocity
+        self.ee_ang = lim.ee_angular_velocity
+        self.W = wheel_matrix(mecanum)
+        self._W = self.W.tolist()
+        self._vj = self.v_joint.tolist()
+        self._aj = self.a_joint.tolist()
+        self._qmin = self.q_min.tolist()
+        self._qmax = self.q_max.tolist()
+
+    # --- joint boxes -----------------------------------------------------------
+    def joint_speed_caps(self, q_a: Vec) -> tuple[Vec, Vec]:
+        """Allowed arm joint velocity range (lo <= 0 <= hi), (6,) each [rad/s], from the
+        speed limits and the position braking zones at ``q_a`` (6,) [rad]."""
+        up = np.clip((self.q_max - q_a) / self.margin, 0.0, 1.0)
+        down = np.clip((q_a - self.q_min) / self.margin, 0.0, 1.0)
+        return -self.v_joint * down, self.v_joint * up
+
+    def box_bounds(self, q: Vec, qdot_prev: Vec, dt: float) -> tuple[Vec, Vec]:
+        """Per-coordinate bounds (9,), (9,) on qdot for one period ``dt`` [s]: speed,
+        position braking and acceleration (box: |vx|, |vy| <= v_lin separately).
+
+        If ``qdot_prev`` lies outside the speed box, the acceleration bound gives way
+        (the bound is the point of the speed box nearest to ``qdot_prev``).
+        """
+        lo = np.empty(9)
+        hi = np.empty(9)
+        lo[:6], hi[:6] = self.joint_speed_caps(q[:6])
+        lo[6:8], hi[6:8] = -self.v_lin, self.v_lin
+        lo[8], hi[8] = -self.w_base, self.w_base
+        acc = np.empty(9)
+        acc[:6] = self.a_joint * dt
+        acc[6:8] = self.a_lin * dt
+        acc[8] = self.a_ang * dt
+        lb = np.maximum(lo, qdot_prev - acc)
+        ub = np.minimum(hi, qdot_prev + acc)
+        bad = lb > ub
+        if bad.any():
+            near = np.clip(qdot_prev, lo, hi)
+            lb[bad] = near[bad]
+            ub[bad] = near[bad]
+        return lb, ub
+
+    # --- scales ----------------------------------------------------------------
+    def velocity_scale(self, qdot: Vec, q_a: Vec, J: Vec) -> float:
+        """Largest s in [0, 1] with s*qdot within every speed and position cap."""
+        # plain floats: ~10x cheaper than numpy for 9-element vectors
+        qd = qdot.tolist()
+        qa = q_a.tolist()
+        s = 1.0
+        margin = self.margin
+        for i in range(6):
+            v = qd[i]
+            if v > 0.0:
+                room = (self._qmax[i] - qa[i]) / margin
+            elif v < 0.0:
+                room = (qa[i] - self._qmin[i]) / margin
+                v = -v
+            else:
+                continue
+            cap = self._vj[i] * (0.0 if room <= 0.0 else (min(1.0, room)))
+            if cap < s * v:
+                s = cap / v
+        vx, vy, wz = qd[6], qd[7], qd[8]
+        vb = math.sqrt(vx * vx + vy * vy)
+        if vb * s > self.v_lin:
+            s = self.v_lin / vb
+        if abs(wz) * s > self.w_base:
+            s = self.w_base / abs(wz)
+        peak = self._wheel_peak(vx, vy, wz)
+        if peak * s > self.wheel:
+            s = self.wheel / peak
+        v = (J @ qdot).tolist()
+        vl = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        if vl * s > self.ee_lin:
+            s = self.ee_lin / vl
+        va = math.sqrt(v[3] * v[3] + v[4] * v[4] + v[5] * v[5])
+        if va * s > self.ee_ang:
+            s = self.ee_ang / va
+        return s if math.isfinite(s) else 0.0
+
+    def _wheel_peak(self, vx: float, vy: float, wz: float) -> float:
+        """max |wheel speed| [rad/s] for a base twist (mecanum matrix rows)."""
+        peak = 0.0
+        for row in self._W:
+            w = abs(row[0] * vx + row[1] * vy + row[2] * wz)
+            peak = max(peak, w)
+        return peak
+
+    def acceleration_scale(self, delta: Vec, dt: float) -> float:
+        """Largest s in [0, 1] with s*delta (9,) within the acceleration limits over dt [s]."""
+        d = delta.tolist()
+        s = 1.0
+        for i in range(6):
+            m = abs(d[i])
+            cap = self._aj[i] * dt
+            if m * s > cap:
+                s = cap / m
+        dl = math.sqrt(d[6] * d[6] + d[7] * d[7])
+        if dl * s > self.a_lin * dt:
+            s = self.a_lin * dt / dl
+        dw = abs(d[8])
+        if dw * s > self.a_ang * dt:
+            s = self.a_ang * dt / dw
+        return s if math.isfinite(s) else 0.0
+
+    def apply(self, qdot_d: Vec, qdot_prev: Vec, q: Vec, J: Vec, dt: float) -> Limited:
+        """Limit ``qdot_d`` (9,) given the previous command (9,), ``q`` (9,), J (6, 9)."""
+        if not (np.isfinite(qdot_d).all() and np.isfinite(qdot_prev).all()):
+            return Limited(np.zeros(9), 0.0, 0.0, 0.0)
+        q_a = q[:6]
+        s_v = self.velocity_scale(qdot_d, q_a, J)
+        qv = s_v * qdot_d
+        delta = qv - qdot_prev
+        s_a = self.acceleration_scale(delta, dt) if dt > 0.0 else 1.0
+        if s_a >= 1.0:  # qv meets every velocity cap by construction
+            return Limited(qv, s_v, s_a, 1.0)
+        out = qdot_prev + s_a * delta
+        s_f = self.velocity_scale(out, q_a, J)
+        if s_f < 1.0:
+            out = s_f * out
+        return Limited(out, s_v, s_a, s_f)

@@ -1,0 +1,289 @@
+"""One control cycle as a pure function: ``controller.step(state, inputs) -> (state, outputs)``.
+
+The daemon's loop thread, the simulator/study and the tests all call the same code::
+
+    ctl = Controller(cfg)                 # builds the model and the solvers once
+    state = ctl.initial_state()
+    state, out = ctl.step(state, StepInputs(f_h, q, qdot, dt))
+    arm.speedj(out.qdot_arm); base.send(out.base_twist)
+    state = ctl.set_mode(state, "locomotion")      # at run time, never a jump
+
+A cycle: admittance (exact ZOH) -> v_d; model at the measured q -> J, M;
+IDK strategy (cross-faded over ``idk.switch.blend_time`` whenever the active solver
+changes) -> qdot_d; limits -> qdot; energies; faults.  On a non-finite number
+(``NON_FINITE``) or a singular configuration (``SINGULAR``: the condition number of
+the whole-body ``J J^T`` above ``safety.max_condition``) the outputs command zero
+velocity, the admittance and the previous command are reset to zero, and ``fault``
+names the cause; :meth:`Controller.step` never raises for these.
+
+Purity: the outputs depend only on ``(state, inputs)``; the controller object only
+holds constants and scratch buffers.  States are frozen dataclasses with read-only
+arrays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from enum import Enum
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import lapack
+
+from mmctl.config import Config
+from mmctl.control.admittance import Admittance
+from mmctl.control.energy import Energy, kinetic_energy
+from mmctl.control.limits import Limits
+from mmctl.control.strategies import IdkStrategy, Problem, make_strategies
+from mmctl.errors import FaultCause, MmctlError
+from mmctl.model.robot import RobotModel, planar_pose
+
+Vec = NDArray[np.float64]
+
+
+class Mode(str, Enum):
+    """The IDK strategy selected by the operator (``idk.strategy``)."""
+
+    MIN_ENERGY = "min-energy"
+    LOCOMOTION = "locomotion"
+    SWITCH = "switch"
+    MANIPULATION = "manipulation"
+    CONSTRAINED = "constrained-min-energy"
+
+
+class SwitchMode(str, Enum):
+    """Sub-mode of the switch benchmark."""
+
+    MANIPULATION = "manipulation"
+    LOCOMOTION = "locomotion"
+
+
+#: The solvers, in the order of :attr:`ControllerState.weights`.
+SOLVERS: tuple[str, ...] = ("min-energy", "locomotion", "manipulation", "constrained-min-energy")
+
+
+class UnknownMode(MmctlError, ValueError):
+    """A mode name that does not exist; the message lists the valid ones."""
+
+
+def _frozen(a: Vec) -> Vec:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+@dataclasses.dataclass(frozen=True)
+class ControllerState:
+    """Everything that carries over from one cycle to the next (immutable).
+
+    v: (6,) admittance twist [m/s, rad/s]; qdot: (9,) previous command after limits;
+    mode: selected strategy; switch: sub-mode used when ``mode`` is SWITCH;
+    weights: blend weight of each solver in :data:`SOLVERS` (sum 1; one-hot when no
+    cross-fade is running); cycle: number of steps taken.
+    """
+
+    v: Vec
+    qdot: Vec
+    mode: Mode
+    switch: SwitchMode
+    weights: tuple[float, float, float, float]
+    cycle: int = 0
+
+    @property
+    def target(self) -> str:
+        """The solver the blend is heading to."""
+        return _target(self.mode, self.switch)
+
+    @property
+    def blending(self) -> bool:
+        """True while a cross-fade is in progress."""
+        return max(self.weights) < 1.0
+
+
+class StepInputs(NamedTuple):
+    """f_h: (6,) processed human wrench in the control frame [N, N m]; q: (9,) measured
+    configuration (arm [rad], base x, y [m], yaw [rad] in the world); qdot: (9,)
+    measured velocities (arm [rad/s], base twist in the base frame); dt: period [s]."""
+
+    f_h: Vec
+    q: Vec
+    qdot: Vec
+    dt: float
+
+
+class StepOutputs(NamedTuple):
+    """What one cycle commands and reports.
+
+    v_d: (6,) admittance twist, control frame; qdot: (9,) command after limits;
+    qdot_arm: (6,) [rad/s] for speedJ; base_twist: (3,) (vx, vy [m/s], wz [rad/s]) in
+    the base frame; energy: E_K from the measured qdot; energy_cmd: E_K from the
+    command (both with the paper's block-diagonal M) [J]; scale: velocity-limit scale
+    of the IDK output (s_v * s_f, 1 = unlimited); accel_scale: acceleration blend s_a;
+    p: (3,) tool position in the world [m]; p_des: (3,) FK(q_des) with the base at its
+    current pose (so |p - p_des| is the paper's x_f); condition: condition number of
+    J J^T; fault: the cause when the cycle was refused, else None.
+    """
+
+    v_d: Vec
+    qdot: Vec
+    qdot_arm: Vec
+    base_twist: Vec
+    energy: Energy
+    energy_cmd: Energy
+    scale: float
+    accel_scale: float
+    p: Vec
+    p_des: Vec
+    condition: float
+    fault: FaultCause | None
+
+
+def _target(mode: Mode, switch: SwitchMode) -> str:
+    if mode is Mode.SWITCH:
+        return switch.value
+    return mode.value
+
+
+def _one_hot(name: str) -> tuple[float, float, float, float]:
+    w = [0.0, 0.0, 0.0, 0.0]
+    w[SOLVERS.index(name)] = 1.0
+    return (w[0], w[1], w[2], w[3])
+
+
+def _parse(enum: type[Enum], value: object) -> Enum:
+    try:
+        return enum(value.value if isinstance(value, Enum) else value)
+    except ValueError:
+        valid = ", ".join(repr(m.value) for m in enum)  # type: ignore[attr-defined]
+        raise UnknownMode(f"unknown mode {value!r}; valid: {valid}") from None
+
+
+_syev = lapack.dsyev
+_ZERO_E = Energy(0.0, 0.0, 0.0)
+_Z3 = _frozen(np.zeros(3))
+_Z6 = _frozen(np.zeros(6))
+_Z9 = _frozen(np.zeros(9))
+
+
+class Controller:
+    """The control chain of one cycle, built once from the configuration.
+
+    model: an existing :class:`RobotModel` (one per thread: its Pinocchio data is
+    scratch space); by default a new one from ``cfg.robot``.
+    """
+
+    def __init__(self, cfg: Config, model: RobotModel | None = None) -> None:
+        self.cfg = cfg
+        self.model = model if model is not None else RobotModel(cfg.robot)
+        self.admittance = Admittance.from_config(cfg.admittance)
+        self.limits = Limits(cfg.limits, cfg.base.mecanum)
+        self.strategies: dict[str, IdkStrategy] = make_strategies(cfg, self.limits)
+        self._solvers = tuple(self.strategies[n] for n in SOLVERS)
+        self.gain = np.array(cfg.idk.null_gain)
+        self.q_des = self.model.q_des  # (9,) arm q_des, base part 0 (its gain is 0 by default)
+        self.p_des_base = self.model.fk_base(self.q_des).translation.copy()
+        self.blend_time = cfg.idk.switch.blend_time
+        self.max_condition = cfg.safety.max_condition
+
+    # --- state -----------------------------------------------------------------
+    def initial_state(self, mode: Mode | str | None = None) -> ControllerState:
+        """At rest, in ``mode`` (default ``idk.strategy``), switch in ``idk.switch.initial``."""
+        m = _parse(Mode, mode if mode is not None else self.cfg.idk.strategy)
+        sw = _parse(SwitchMode, self.cfg.idk.switch.initial)
+        assert isinstance(m, Mode) and isinstance(sw, SwitchMode)
+        return ControllerState(_Z6, _Z9, m, sw, _one_hot(_target(m, sw)), 0)
+
+    def set_mode(self, state: ControllerState, mode: Mode | str) -> ControllerState:
+        """Select another strategy; the command cross-fades over ``blend_time``."""
+        m = _parse(Mode, mode)
+        assert isinstance(m, Mode)
+        return dataclasses.replace(state, mode=m)
+
+    def set_switch(self, state: ControllerState, sub: SwitchMode | str) -> ControllerState:
+        """Set the switch sub-mode (manipulation/locomotion); used while mode is SWITCH."""
+        s = _parse(SwitchMode, sub)
+        assert isinstance(s, SwitchMode)
+        return dataclasses.replace(state, switch=s)
+
+    def toggle_switch(self, state: ControllerState) -> ControllerState:
+        """manipulation <-> locomotion (the handle button)."""
+        other = (SwitchMode.LOCOMOTION if state.switch is SwitchMode.MANIPULATION
+                 else SwitchMode.MANIPULATION)
+        return dataclasses.replace(state, switch=other)
+
+    def _blend(self, weights: tuple[float, ...], target: str, dt: float) -> tuple[float, ...]:
+        """Move the weights linearly toward the one-hot target by dt / blend_time."""
+        t = SOLVERS.index(target)
+        wt = weights[t]
+        if wt >= 1.0:
+            return weights
+        new_t = min(1.0, wt + dt / self.blend_time)
+        if new_t >= 1.0:
+            return _one_hot(target)
+        k = (1.0 - new_t) / (1.0 - wt)
+        return tuple(new_t if i == t else w * k for i, w in enumerate(weights))
+
+    # --- the cycle -------------------------------------------------------------
+    def _fault(self, state: ControllerState, cause: FaultCause, cond: float,
+               weights: tuple[float, ...]) -> tuple[ControllerState, StepOutputs]:
+        new = dataclasses.replace(state, v=_Z6, qdot=_Z9, weights=weights,  # type: ignore[arg-type]
+                                  cycle=state.cycle + 1)
+        out = StepOutputs(_Z6, _Z9, _Z6, _Z3, _ZERO_E, _ZERO_E, 0.0, 0.0, _Z3, _Z3, cond, cause)
+        return new, out
+
+    def step(self, state: ControllerState, inp: StepInputs) -> tuple[ControllerState, StepOutputs]:
+        """One cycle (see the module docstring)."""
+        f_h = np.asarray(inp.f_h, dtype=float)
+        q = np.asarray(inp.q, dtype=float)
+        qd_meas = np.asarray(inp.qdot, dtype=float)
+        dt = float(inp.dt)
+        weights = self._blend(state.weights, state.target, dt) if dt > 0.0 else state.weights
+        if f_h.shape != (6,) or q.shape != (9,) or qd_meas.shape != (9,):
+            return self._fault(state, FaultCause.NON_FINITE, math.nan, weights)
+        # x @ x is finite iff every entry is (for physically sized values): one cheap check
+        if not (math.isfinite(f_h @ f_h + q @ q + qd_meas @ qd_meas + dt) and dt > 0.0):
+            return self._fault(state, FaultCause.NON_FINITE, math.nan, weights)
+
+        v_d = self.admittance.step(state.v, f_h, dt)
+        kin = self.model.update(q)
+        J = kin.J
+        w, _, info = _syev(J @ J.T, compute_v=0)
+        lo, hi = float(w[0]), float(w[-1])
+        if info != 0 or not math.isfinite(hi):
+            return self._fault(state, FaultCause.NON_FINITE, math.nan, weights)
+        cond = hi / lo if lo > 0.0 else math.inf
+        if cond > self.max_condition:
+            return self._fault(state, FaultCause.SINGULAR, cond, weights)
+
+        z = self.gain * (self.q_des - q)
+        problem = Problem(kin, v_d, q, state.qdot, dt, z)
+        qdot_d = None
+        for wgt, solver in zip(weights, self._solvers):
+            if wgt > 0.0:
+                x = solver.solve(problem)
+                qdot_d = wgt * x if qdot_d is None else qdot_d + wgt * x
+        assert qdot_d is not None
+        lim = self.limits.apply(qdot_d, state.qdot, q, J, dt)
+        qdot = lim.qdot
+        if not math.isfinite(qdot @ qdot + v_d @ v_d):
+            return self._fault(state, FaultCause.NON_FINITE, cond, weights)
+
+        e_meas = kinetic_energy(kin.M_a, kin.M_b, qd_meas)
+        e_cmd = kinetic_energy(kin.M_a, kin.M_b, qdot)
+        c, s = math.cos(q[8]), math.sin(q[8])
+        pd = self.p_des_base
+        p_des = np.array([q[6] + c * pd[0] - s * pd[1], q[7] + s * pd[0] + c * pd[1], pd[2]])
+        v_d.setflags(write=False)
+        qdot.setflags(write=False)
+        new = ControllerState(v_d, qdot, state.mode, state.switch, weights,  # type: ignore[arg-type]
+                              state.cycle + 1)
+        out = StepOutputs(v_d, qdot, qdot[:6], qdot[6:], e_meas, e_cmd, lim.scale * lim.final_scale,
+                          lim.accel_scale, kin.p, p_des, cond, None)
+        return new, out
+
+    # --- helpers for the simulator and tests -----------------------------------
+    def p_des(self, q: Vec) -> Vec:
+        """FK(q_des) (3,) in the world with the base at ``q[6:9]``."""
+        return (planar_pose(q[6], q[7], q[8]) * self.model.fk_base(self.q_des)).translation.copy()

@@ -1,0 +1,163 @@
+"""IDK strategies behind one interface: ``strategy.solve(problem) -> qdot (9,)``.
+
+* :class:`MinEnergy` -- the paper's minimum kinetic energy + dynamically consistent
+  null-space term (block-diagonal M, or the coupled M with ``robot.full_inertia``);
+* :class:`Locomotion` -- the benchmark's damped weighted least squares (eq. 7) with
+  the Euclidean null-space projector;
+* :class:`Manipulation` -- base locked, the same damped least squares on the arm
+  Jacobian J_a alone (square: no null space left);
+* :class:`ConstrainedMinEnergy` -- beyond the paper: the min-energy objective with
+  joint position/velocity/acceleration limits (and base speed/acceleration boxes) as
+  hard bounds, a 9-variable box QP solved by :func:`mmctl.control.qp.box_qp`.
+
+The *switch* benchmark is not a solver of its own: the controller (:mod:`.step`)
+runs :class:`Manipulation` or :class:`Locomotion` and cross-fades between them.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import ClassVar, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmctl.config import Config
+from mmctl.control.idk import min_energy, min_energy_block, weighted_dls
+from mmctl.control.limits import Limits
+from mmctl.control.qp import box_qp
+from mmctl.model.robot import Kinematics
+
+Vec = NDArray[np.float64]
+
+
+class Problem(NamedTuple):
+    """One IDK problem.
+
+    kin: the model evaluated at q; v_d: (6,) desired twist, control frame;
+    q: (9,) configuration; qdot_prev: (9,) previous command; dt: period [s];
+    z: (9,) secondary-task velocity ``G (q_des - q)`` (projected by each strategy).
+    """
+
+    kin: Kinematics
+    v_d: Vec
+    q: Vec
+    qdot_prev: Vec
+    dt: float
+    z: Vec
+
+
+class IdkStrategy(ABC):
+    """A way to turn a desired twist into whole-body velocities."""
+
+    name: ClassVar[str]
+
+    @abstractmethod
+    def solve(self, p: Problem) -> Vec:
+        """Joint velocities (9,): arm [rad/s], base twist in the base frame."""
+
+
+class MinEnergy(IdkStrategy):
+    """``q* = J_M# v_d + (I - J_M# J) z`` (paper Property 1 and eq. 12-13)."""
+
+    name = "min-energy"
+
+    def __init__(self, cfg: Config) -> None:
+        self.thr = cfg.idk.singular_threshold
+        self.damp = cfg.idk.max_damping
+        self.full = cfg.robot.full_inertia
+
+    def solve(self, p: Problem) -> Vec:
+        k = p.kin
+        if self.full and k.M_full is not None:
+            return min_energy(k.J, k.M_full, p.v_d, p.z,
+                              singular_threshold=self.thr, max_damping=self.damp)
+        return min_energy_block(k.J, k.M_a, k.M_b, p.v_d, p.z, self.thr, self.damp).x
+
+
+class Locomotion(IdkStrategy):
+    """``(J^T W_a J + W_b)^-1 J^T W_a v_d + (I - J# J) z`` (paper eq. 7)."""
+
+    name = "locomotion"
+
+    def __init__(self, cfg: Config) -> None:
+        self.wa = np.array(cfg.idk.locomotion.w_alpha)
+        self.wb = np.array(cfg.idk.locomotion.w_beta)
+        self.thr = cfg.idk.singular_threshold
+        self.damp = cfg.idk.max_damping
+
+    def solve(self, p: Problem) -> Vec:
+        return weighted_dls(p.kin.J, p.v_d, self.wa, self.wb, p.z,
+                            singular_threshold=self.thr, max_damping=self.damp)
+
+
+class Manipulation(IdkStrategy):
+    """Base locked: damped least squares on J_a with the arm part of W_beta."""
+
+    name = "manipulation"
+
+    def __init__(self, cfg: Config) -> None:
+        self.wa = np.array(cfg.idk.locomotion.w_alpha)
+        self.wb = np.array(cfg.idk.locomotion.w_beta[:6])
+        self.thr = cfg.idk.singular_threshold
+        self.damp = cfg.idk.max_damping
+
+    def solve(self, p: Problem) -> Vec:
+        out = np.zeros(9)
+        out[:6] = weighted_dls(p.kin.J[:, :6], p.v_d, self.wa, self.wb, p.z[:6],
+                               singular_threshold=self.thr, max_damping=self.damp)
+        return out
+
+
+class ConstrainedMinEnergy(IdkStrategy):
+    """``min |qd - z|_M^2 / 2`` s.t. ``J qd = v_d`` and box bounds on qd.
+
+    Without an active bound the minimiser is exactly :class:`MinEnergy`'s solution
+    (it is the M-closest point to z on the task manifold), and that solution is
+    returned as is.  Otherwise the task becomes the stiff penalty
+    ``rho |J qd - v_d|^2 / 2`` (``idk.constrained.task_weight``) so the QP stays
+    feasible when the bounds cannot produce v_d, and the box QP is solved by active
+    set, warm-started from the clipped unconstrained solution.
+    """
+
+    name = "constrained-min-energy"
+
+    def __init__(self, cfg: Config, limits: Limits) -> None:
+        self.unconstrained = MinEnergy(cfg)
+        self.limits = limits
+        self.rho = cfg.idk.constrained.task_weight
+        self.max_iter = cfg.idk.constrained.max_iter
+        self.last_iterations = 0
+
+    def bounds(self, p: Problem) -> tuple[Vec, Vec]:
+        """The (9,), (9,) bounds on qdot for this cycle."""
+        return self.limits.box_bounds(p.q, p.qdot_prev, p.dt)
+
+    def solve(self, p: Problem) -> Vec:
+        x = self.unconstrained.solve(p)
+        lb, ub = self.bounds(p)
+        if bool(np.all(x >= lb)) and bool(np.all(x <= ub)):
+            self.last_iterations = 0
+            return x
+        k = p.kin
+        if k.M_full is not None and self.unconstrained.full:
+            H = k.M_full.copy()
+        else:
+            H = np.zeros((9, 9))
+            H[:6, :6] = k.M_a
+            H[6, 6], H[7, 7], H[8, 8] = k.M_b
+        g = -(H @ p.z)
+        H += self.rho * (k.J.T @ k.J)
+        g -= self.rho * (k.J.T @ p.v_d)
+        res = box_qp(H, g, lb, ub, x0=x, max_iter=self.max_iter)
+        self.last_iterations = res.iterations
+        return res.x
+
+
+def make_strategies(cfg: Config, limits: Limits) -> dict[str, IdkStrategy]:
+    """The four solvers by name (``min-energy``, ``locomotion``, ``manipulation``,
+    ``constrained-min-energy``)."""
+    items: list[IdkStrategy] = [
+        MinEnergy(cfg), Locomotion(cfg), Manipulation(cfg), ConstrainedMinEnergy(cfg, limits)
+    ]
+    return {s.name: s for s in items}
