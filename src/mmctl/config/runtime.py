@@ -61,12 +61,19 @@ class DaemonConfig:
 
 @section
 class TelemetryConfig:
-    """rerun telemetry (off by default)."""
+    """rerun telemetry (off by default; `mmctl run --viewer/--connect/--record` turn it on)."""
 
-    enabled: bool = param(False)
-    plot_rate: float = param(100.0, unit="Hz", gt=0.0)
-    scene_rate: float = param(30.0, unit="Hz", gt=0.0)
-    queue_size: int = param(4096, gt=0)
+    enabled: bool = param(False, doc="publish; with no destination below: the loopback viewer")
+    plot_rate: float = param(100.0, unit="Hz", gt=0.0, doc="rate of the plot-only series")
+    scene_rate: float = param(
+        30.0, unit="Hz", gt=0.0, le=200.0, doc="3-D frames and publisher wake-ups per second"
+    )
+    queue_size: int = param(4096, gt=0, doc="samples held between the loop and the publisher")
+    viewer: bool = param(False, doc="spawn a local rerun viewer (127.0.0.1:9876)")
+    connect: str = param(
+        "", doc="stream to a running viewer: HOST:PORT, PORT or rerun+http URL; '' = no"
+    )
+    record: str = param("", doc="save a recording to this .rrd file; '' = no")
 
 
 @section

@@ -9,6 +9,7 @@ recomputed from a recording see bit-identical inputs.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -22,16 +23,30 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 
+def norm3(x: F64) -> float:
+    """‖x[:3]‖ of one vector, evaluated as ``sqrt((x0 x0 + x1 x1) + x2 x2)``.
+
+    The loop-side trial tracker uses this scalar form; :func:`norm3_rows` is the same
+    expression on columns, so both give bit-identical results (IEEE-754, no fusing).
+    """
+    x0, x1, x2 = float(x[0]), float(x[1]), float(x[2])
+    return math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+
+
+def norm3_rows(a: F64) -> F64:
+    """:func:`norm3` of every row of an (n, >=3) array."""
+    return np.sqrt(a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1] + a[:, 2] * a[:, 2])
+
+
 def force_norm(f_h: F64) -> F64:
-    """‖f_h‖ per row of an (n, 6) wrench array: the norm of the force part [N]."""
-    f = f_h[:, :3]
-    return np.sqrt(np.einsum("ij,ij->i", f, f))
+    """‖f_h‖ per row of an (n, 6) wrench array: the norm of the force part [N]
+    (the paper keeps the rotations fixed; ``mmctl.control.metrics`` does the same)."""
+    return norm3_rows(f_h)
 
 
 def ee_speed(twist: F64) -> F64:
     """‖v‖ per row of an (n, 6) twist array: the linear speed [m/s]."""
-    v = twist[:, :3]
-    return np.sqrt(np.einsum("ij,ij->i", v, v))
+    return norm3_rows(twist)
 
 
 def time_ns(t: F64) -> I64:

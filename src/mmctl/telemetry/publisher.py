@@ -82,6 +82,7 @@ class Publisher:
         self.batches = 0
         self.flush_ns_max = 0  #: longest flush so far [ns]
         self._timing_next = -1
+        self._state: tuple[str, str] | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._progress = threading.Condition()
@@ -187,6 +188,8 @@ class Publisher:
                                    columns[0].time_ns[-1:].copy(),
                                    {layout.DROPPED.path: np.array([[float(self.queue.dropped)]])}))
         self.sink.write_columns(columns)
+        for event in self._state_changes(samples):
+            self.sink.write_event(event)
         for event in self.events.drain():
             self.sink.write_event(event)
         if samples and self.scene is not None:
@@ -197,6 +200,19 @@ class Publisher:
             self.published += len(samples)
             self._progress.notify_all()
         self.flush_ns_max = max(self.flush_ns_max, time.perf_counter_ns() - t0)
+
+    def _state_changes(self, samples: list[TelemetrySample]) -> list[Event]:
+        """Text events where the mode or the safety state changed."""
+        out = []
+        state = self._state
+        for s in samples:
+            now = (s.mode, s.safety)
+            if now != state:
+                level = "ERROR" if s.safety == "fault" else "INFO"
+                out.append(Event(s.cycle, s.t, f"mode={s.mode} safety={s.safety}", level))
+                state = now
+        self._state = state
+        return out
 
     def _timing_columns(self) -> Columns | None:
         ring = self.timing
