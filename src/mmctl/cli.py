@@ -19,6 +19,7 @@ from mmctl.errors import MmctlError
 #: (command, module, one-line help)
 COMMANDS: list[tuple[str, str, str]] = [
     ("check-config", "mmctl.commands.check_config", "validate a YAML config file"),
+    ("study", "mmctl.commands.study", "reproduce the paper's 27-user study in simulation"),
 ]
 
 #: group -> (help, [(sub-command, module, one-line help)])

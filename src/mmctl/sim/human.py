@@ -111,9 +111,10 @@ class Task:
 
 #: Hole layout of the study (in the task plane, metres from the start handle position;
 #: first coordinate along the robot's forward axis at the start, second to its left).
-#: Two holes are within the arm's reach of the start pose, three are 1-2 m away.
+#: Two holes are within the arm's reach of the start pose, three are 0.8-1.5 m away;
+#: the moves are 0.3-1.8 m long and the last one is short (0.5 m).
 STUDY_HOLES: tuple[tuple[float, float], ...] = (
-    (0.20, 0.25), (-0.15, -0.25), (0.35, 1.40), (0.05, 1.05), (-0.25, -0.70),
+    (0.20, 0.25), (-0.15, -0.30), (0.30, 1.45), (-0.10, 1.05), (0.20, 0.75),
 )
 #: The short task of ``--quick``: one hole in reach, one beyond.
 QUICK_HOLES: tuple[tuple[float, float], ...] = ((0.15, 0.20), (0.10, 1.10))

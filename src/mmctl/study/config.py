@@ -1,0 +1,80 @@
+"""Settings of one study run (not part of the daemon's configuration)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from mmctl.config import Config, default_config, load_config
+from mmctl.config.control import STRATEGIES
+from mmctl.errors import ConfigError
+from mmctl.sim.human import QUICK_HOLES, STUDY_HOLES
+from mmctl.sim.plant import PlantParams
+from mmctl.study.results import PAPER_APPROACHES
+
+#: Users of ``--quick`` when ``--users`` is not given.
+QUICK_USERS = 3
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """One study: who, which approaches, how long, which plant.
+
+    users: number of simulated users; seed: population seed; strategies: control
+    approaches, each an ``idk.strategy`` value; quick: the short two-hole task;
+    dt: control period [s] (the daemon's T); t_max: give up an execution after this
+    long [s]; record_every: keep every n-th sample of the time series;
+    plant: the simulated robot's lags and acceleration limits (None: the
+    acceleration limits of the control config and the default lags);
+    config_path: control configuration YAML (None: the defaults).
+    """
+
+    users: int = 27
+    seed: int = 0
+    strategies: tuple[str, ...] = PAPER_APPROACHES
+    quick: bool = False
+    dt: float = 0.002
+    t_max: float = 120.0
+    record_every: int = 5
+    plant: PlantParams | None = None
+    config_path: str | None = None
+    holes: tuple[tuple[float, float], ...] = field(default=STUDY_HOLES)
+
+    def __post_init__(self) -> None:
+        if self.users < 1:
+            raise ConfigError("study.users", self.users, "must be >= 1")
+        if not 0.0 < self.dt <= 0.02:
+            raise ConfigError("study.dt", self.dt, "must be in (0, 0.02] s")
+        if self.t_max <= 0.0:
+            raise ConfigError("study.t_max", self.t_max, "must be > 0 s")
+        if self.record_every < 1:
+            raise ConfigError("study.record_every", self.record_every, "must be >= 1")
+        if not self.strategies:
+            raise ConfigError("study.strategies", self.strategies, "name at least one strategy")
+        for s in self.strategies:
+            if s not in STRATEGIES:
+                raise ConfigError("study.strategies", s, f"must be one of {', '.join(STRATEGIES)}")
+        if len(set(self.strategies)) != len(self.strategies):
+            raise ConfigError("study.strategies", self.strategies, "must not repeat a strategy")
+
+    @classmethod
+    def make(cls, quick: bool = False, users: int | None = None, **kw: object) -> StudyConfig:
+        """Defaults for a full or ``quick`` study; ``users`` None = 27 or QUICK_USERS."""
+        args: dict[str, object] = {
+            "users": users if users is not None else (QUICK_USERS if quick else 27),
+            "quick": quick,
+            "holes": QUICK_HOLES if quick else STUDY_HOLES,
+            "t_max": 60.0 if quick else 120.0,
+        }
+        args.update(kw)
+        return cls(**args)  # type: ignore[arg-type]
+
+    def control_config(self, strategy: str) -> Config:
+        """The control configuration of one execution: the file (or defaults) with
+        ``idk.strategy`` set to ``strategy``."""
+        cfg = load_config(Path(self.config_path)) if self.config_path else default_config()
+        return replace(cfg, idk=replace(cfg.idk, strategy=strategy))
+
+    def plant_params(self, cfg: Config) -> PlantParams:
+        """The plant of this study for the control configuration ``cfg``."""
+        return self.plant if self.plant is not None else PlantParams.from_config(cfg)

@@ -1,0 +1,107 @@
+"""Values the study passes around: one execution's metrics and time series, and the
+paper's reference numbers."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+#: The five metrics, in the paper's column order.
+METRICS: tuple[str, ...] = ("E", "F_h", "v", "x_f", "T_f")
+#: Column headers as the paper prints them.
+METRIC_LABELS: dict[str, str] = {
+    "E": "Ē [J]", "F_h": "F̄_h [N]", "v": "v̄ [m/s]", "x_f": "x_f [m]", "T_f": "T_f [s]",
+}
+#: How each approach is named in the paper's tables.
+APPROACH_NAMES: dict[str, str] = {
+    "locomotion": "Locomotion",
+    "switch": "Switch",
+    "min-energy": "Minimum Energy",
+    "manipulation": "Manipulation",
+    "constrained-min-energy": "Constrained Min. Energy",
+}
+#: The paper's approaches, in its order.
+PAPER_APPROACHES: tuple[str, ...] = ("locomotion", "switch", "min-energy")
+
+#: The paper's medians (Tables I-III; SPEC §4).
+PAPER_MEDIANS: dict[str, dict[str, float]] = {
+    "locomotion": {"E": 2.52, "F_h": 15.84, "v": 0.16, "x_f": 0.09, "T_f": 31.77},
+    "switch": {"E": 0.95, "F_h": 11.31, "v": 0.14, "x_f": 0.28, "T_f": 32.97},
+    "min-energy": {"E": 0.86, "F_h": 12.30, "v": 0.14, "x_f": 0.08, "T_f": 28.33},
+}
+
+#: The paper's Holm-corrected p-values (Table IV), keyed by metric then (a, b).
+PAPER_PCORR: dict[str, dict[tuple[str, str], float]] = {
+    "E": {("locomotion", "switch"): 1.682e-5, ("locomotion", "min-energy"): 1.682e-5,
+          ("switch", "min-energy"): 0.337},
+    "F_h": {("locomotion", "switch"): 9.410e-4, ("locomotion", "min-energy"): 0.0153,
+            ("switch", "min-energy"): 0.0609},
+    "v": {("locomotion", "switch"): 0.0172, ("locomotion", "min-energy"): 0.0977,
+          ("switch", "min-energy"): 0.0977},
+    "x_f": {("locomotion", "switch"): 1.682e-5, ("locomotion", "min-energy"): 0.414,
+            ("switch", "min-energy"): 1.682e-5},
+    "T_f": {("locomotion", "switch"): 0.0285, ("locomotion", "min-energy"): 0.0285,
+            ("switch", "min-energy"): 4.412e-4},
+}
+
+
+class Series(NamedTuple):
+    """Decimated time series of one execution (float32 to keep them small).
+
+    t [s]; speed: end-effector linear speed ||v|| [m/s]; energy: E_K [J] from the
+    actual velocities; energy_base: the base's share [J]; force: ||f_h|| [N];
+    deviation: ||p - p_des|| of the handle relative to the base [m] (x_f at T_f);
+    locomotion: 1 where the switch strategy was in locomotion, else 0.
+    """
+
+    t: NDArray[np.float32]
+    speed: NDArray[np.float32]
+    energy: NDArray[np.float32]
+    energy_base: NDArray[np.float32]
+    force: NDArray[np.float32]
+    deviation: NDArray[np.float32]
+    locomotion: NDArray[np.int8]
+
+
+class Execution(NamedTuple):
+    """One user with one approach.
+
+    E [J], F_h [N], v [m/s], x_f [m], T_f [s]: the paper's metrics; E_base [J]: mean
+    kinetic energy of the base alone; F_max [N]: peak ||f_h||; switches: switch
+    requests the user made (every approach receives them; only the switch strategy
+    acts on them); completed: the user finished
+    the last insertion before the time limit (otherwise T_f is the limit); faults:
+    cycles on which the controller reported a fault.
+    """
+
+    user: int
+    strategy: str
+    E: float
+    F_h: float
+    v: float
+    x_f: float
+    T_f: float
+    E_base: float
+    F_max: float
+    switches: int
+    completed: bool
+    faults: int
+    series: Series
+
+    def metric(self, name: str) -> float:
+        """One of :data:`METRICS` by name."""
+        return float(getattr(self, name))
+
+
+#: results.csv columns, in order.
+CSV_COLUMNS: tuple[str, ...] = (
+    "user", "strategy", *METRICS, "E_base", "F_max", "switches", "completed", "faults",
+)
+
+
+def csv_row(e: Execution) -> list[str]:
+    """The execution as results.csv fields (floats with 10 significant digits)."""
+    fl = [format(e.metric(m), ".10g") for m in (*METRICS, "E_base", "F_max")]
+    return [str(e.user), e.strategy, *fl, str(e.switches), str(int(e.completed)), str(e.faults)]
