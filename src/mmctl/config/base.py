@@ -32,6 +32,7 @@ class CanopenConfig:
     heartbeat_period: float = param(0.02, unit="s", gt=0.0, doc="our producer heartbeat")
     counts_per_rev: int = param(4096, gt=0, doc="encoder counts per wheel revolution")
     sdo_timeout: float = param(0.5, unit="s", gt=0.0)
+    master_node_id: int = param(127, ge=1, le=127, doc="node id of our heartbeat producer")
 
 
 @section
@@ -41,6 +42,9 @@ class SerialConfig:
     port: str = param("/dev/ttyUSB0", min_len=1)
     baudrate: int = param(921600, gt=0)
     timeout: float = param(0.05, unit="s", gt=0.0)
+    link_timeout: float = param(
+        0.1, unit="s", gt=0.0, doc="no valid frame from the bridge for this long -> base_link_lost"
+    )
 
 
 @section
