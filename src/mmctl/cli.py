@@ -19,6 +19,8 @@ from mmctl.errors import MmctlError
 #: (command, module, one-line help)
 COMMANDS: list[tuple[str, str, str]] = [
     ("check-config", "mmctl.commands.check_config", "validate a YAML config file"),
+    ("trial", "mmctl.commands.trial", "bracket a task execution: trial start|stop|status"),
+    ("metrics", "mmctl.commands.metrics", "recompute trial metrics from a .rrd recording"),
     ("study", "mmctl.commands.study", "reproduce the paper's 27-user study in simulation"),
 ]
 

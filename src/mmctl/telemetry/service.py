@@ -1,0 +1,153 @@
+"""What the daemon owns for telemetry: the optional publisher, the trial tracker and
+the per-cycle hook that feeds them.
+
+The daemon calls :meth:`TelemetryService.start` once its loop origin is known, installs
+:meth:`TelemetryService.hook` as its ``sample_hook``, forwards ``{"cmd": "trial"}``
+requests to :meth:`TelemetryService.command` and calls :meth:`close` at shutdown.
+
+Cost when off: with no destination the publisher, rerun and the scene model are never
+created or imported, and the hook is None (the daemon does not even build a sample)
+except while a trial is bracketed, when it is the tracker's ``observe`` (~1 us).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import structlog
+
+from mmctl import __version__
+from mmctl.config import Config
+from mmctl.errors import MmctlError
+from mmctl.telemetry.events import Event
+from mmctl.telemetry.rerun_sink import Destinations
+from mmctl.telemetry.sample import TelemetrySample
+from mmctl.telemetry.trial import TrialTracker
+
+log = structlog.get_logger("mmctl.telemetry")
+
+Hook = Callable[[TelemetrySample], None]
+OnLoop = Callable[[Callable[[], Any]], Any]
+
+
+def destinations_from(cfg: Config, viewer: bool = False, connect: str | None = None,
+                      record: str | None = None) -> Destinations:
+    """Config ``telemetry:`` merged with the command-line flags (flags win).
+
+    ``telemetry.enabled`` with no destination at all streams to the loopback viewer.
+    """
+    t = cfg.telemetry
+    d = Destinations(
+        viewer=viewer or t.viewer,
+        connect=connect if connect is not None else (t.connect or None),
+        record=record if record is not None else (t.record or None),
+    )
+    if t.enabled and not d.any:
+        d = d._replace(connect="")
+    return d
+
+
+class TelemetryService:
+    """Publisher (when any destination is set) + trial tracker + the loop hook.
+
+    cfg: the daemon's configuration; destinations: where telemetry goes (nothing: no
+    publisher).
+    """
+
+    def __init__(self, cfg: Config, destinations: Destinations | None = None):
+        self.cfg = cfg
+        self.destinations = destinations if destinations is not None else Destinations()
+        self.publisher: Any = None
+        self.tracker = TrialTracker(1.0 / cfg.loop.rate_hz, on_event=self._post)
+
+    @property
+    def enabled(self) -> bool:
+        """True when samples go to rerun."""
+        return self.destinations.any
+
+    def start(self, ring: Any = None, origin_ns: int = 0) -> None:
+        """Open the destinations and start the publisher thread (no-op when disabled).
+
+        ring: the loop's TimingRing; origin_ns: perf_counter_ns of t = 0.
+        """
+        if not self.enabled or self.publisher is not None:
+            return
+        from mmctl.telemetry.publisher import Publisher
+        from mmctl.telemetry.rerun_sink import RerunSink
+        from mmctl.telemetry.scene import SceneBuilder
+
+        cfg, t = self.cfg, self.cfg.telemetry
+        static = {"period_s": 1.0 / cfg.loop.rate_hz, "loop_rate_hz": cfg.loop.rate_hz,
+                  "plot_rate_hz": t.plot_rate, "scene_rate_hz": t.scene_rate,
+                  "queue_size": t.queue_size, "config": cfg.name, "mmctl": __version__}
+        sink = RerunSink(self.destinations, recording_name=cfg.name, static=static,
+                         mecanum=cfg.base.mecanum)
+        self.publisher = Publisher(sink, loop_rate_hz=cfg.loop.rate_hz, plot_rate_hz=t.plot_rate,
+                                   scene_rate_hz=t.scene_rate, queue_size=t.queue_size,
+                                   timing=ring, origin_ns=origin_ns,
+                                   scene=SceneBuilder(cfg.robot))
+        self.publisher.start()
+        log.info("telemetry_started", viewer=self.destinations.viewer,
+                 connect=self.destinations.connect, record=self.destinations.record)
+
+    def hook(self) -> Hook | None:
+        """The per-cycle callable for the loop (None: build no samples at all)."""
+        pub, tracker = self.publisher, self.tracker
+        if pub is None:
+            return tracker.observe if tracker.active else None
+        put, observe = pub.put, tracker.observe
+
+        def both(s: TelemetrySample) -> None:
+            observe(s)
+            put(s)
+
+        return both
+
+    def command(self, req: Mapping[str, Any], on_loop: OnLoop, daemon: Any) -> dict[str, Any]:
+        """``{"cmd": "trial", "action": "start" | "stop" | "status"}`` from the socket.
+
+        on_loop runs a function on the loop thread and returns its result; the daemon's
+        ``sample_hook`` is refreshed there (a trial needs samples even with telemetry off).
+        """
+        action = req.get("action")
+        tracker = self.tracker
+        if action == "start":
+            def start() -> int:
+                n = tracker.start()
+                daemon.sample_hook = self.hook()
+                return n
+            return {"trial": on_loop(start), "started": True}
+        if action == "stop":
+            def stop() -> Any:
+                rows = tracker.stop()
+                daemon.sample_hook = self.hook()
+                return rows
+            return tracker.finish(on_loop(stop)).as_dict()
+        if action == "status":
+            return {"active": tracker.active, "trials": [r.as_dict() for r in tracker.results]}
+        raise MmctlError(f"trial action {action!r}: expected start, stop or status")
+
+    def status(self) -> dict[str, Any]:
+        """For ``mmctl status``: destinations and publisher counters."""
+        out: dict[str, Any] = {"enabled": self.enabled, "trial_active": self.tracker.active}
+        if self.publisher is not None:
+            out.update(self.publisher.stats())
+            out["record"] = self.destinations.record
+        return out
+
+    def close(self) -> None:
+        """Flush and close the publisher (idempotent); a publisher error is logged."""
+        pub, self.publisher = self.publisher, None
+        if pub is None:
+            return
+        try:
+            pub.close()
+        except Exception as exc:  # noqa: BLE001 -- telemetry must not break shutdown
+            log.error("telemetry_close_failed", error=repr(exc))
+        log.info("telemetry_stopped", **{k: v for k, v in pub.stats().items() if k != "error"})
+
+    def _post(self, event: Event) -> None:
+        pub = self.publisher
+        if pub is not None:
+            pub.post_event(event)

@@ -1,0 +1,229 @@
+"""Telemetry queue, batching and publisher thread, against fake sinks (no rerun)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+
+from mmctl.runtime.loop import CycleLoop
+from mmctl.runtime.timing import TimingRing
+from mmctl.telemetry import layout
+from mmctl.telemetry.batch import Columns, full_rate, norm3, norm3_rows, plot_rate, plot_stride
+from mmctl.telemetry.events import Event
+from mmctl.telemetry.publisher import Publisher
+from mmctl.telemetry.queue import DropQueue
+from mmctl.telemetry.synthetic import synthetic_sample, synthetic_samples
+
+WAIT = 60.0  # generous: the machine is shared
+
+
+class RecordingSink:
+    """Keeps everything it is given; ``gate`` (if set) blocks write_columns until set."""
+
+    def __init__(self, gate: threading.Event | None = None, fail_after: int | None = None):
+        self.gate = gate
+        self.fail_after = fail_after
+        self.entered = threading.Event()
+        self.columns: list[Columns] = []
+        self.scenes: list[int] = []
+        self.events: list[Event] = []
+        self.opened = self.closed = 0
+
+    def open(self) -> None:
+        self.opened += 1
+
+    def write_columns(self, columns: list[Columns]) -> None:
+        self.entered.set()
+        if self.gate is not None:
+            assert self.gate.wait(WAIT), "test gate never opened"
+        if self.fail_after is not None and len(self.columns) >= self.fail_after:
+            raise RuntimeError("sink broke")
+        self.columns.extend(columns)
+
+    def write_scene(self, cycle: int, t: float, frame: object) -> None:
+        self.scenes.append(cycle)
+
+    def write_event(self, event: Event) -> None:
+        self.events.append(event)
+
+    def close(self) -> None:
+        self.closed += 1
+
+    def rows(self, path: str) -> tuple[np.ndarray, np.ndarray]:
+        cyc = [c.cycle for c in self.columns if path in c.values]
+        val = [c.values[path] for c in self.columns if path in c.values]
+        if not cyc:
+            return np.zeros(0, np.int64), np.zeros((0, 0))
+        return np.concatenate(cyc), np.concatenate(val)
+
+
+class CountScene:
+    def frame(self, s: object) -> str:
+        return "frame"
+
+
+# -- the queue ----------------------------------------------------------------------------
+def test_queue_drops_new_items_when_full_and_counts_them() -> None:
+    q: DropQueue[int] = DropQueue(3)
+    assert [q.put(i) for i in range(5)] == [True, True, True, False, False]
+    assert (q.accepted, q.dropped, len(q)) == (3, 2, 3)
+    assert q.drain(2) == [0, 1]
+    assert q.put(9)
+    assert q.drain() == [2, 9]
+    assert (q.taken, len(q)) == (4, 0)
+    with pytest.raises(ValueError):
+        DropQueue(0)
+
+
+# -- batching -----------------------------------------------------------------------------
+def test_norm3_scalar_and_column_forms_are_bit_identical() -> None:
+    a = np.random.default_rng(1).normal(scale=40.0, size=(2000, 6))
+    assert np.array_equal(norm3_rows(a), np.array([norm3(r) for r in a]))
+    assert norm3(np.array([3.0, 4.0, 12.0, 99.0])) == 13.0
+
+
+def test_full_and_plot_rate_columns_hold_the_sample_values() -> None:
+    samples = list(synthetic_samples(23, start=7))
+    cols = full_rate(samples)
+    assert list(cols.cycle) == list(range(7, 30))
+    assert cols.time_ns[1] - cols.time_ns[0] == 2_000_000
+    e = cols.values[layout.ENERGY.path]
+    assert e.shape == (23, 3)
+    assert e[4, 0] == samples[4].e_total and e[4, 2] == samples[4].e_base
+    f = cols.values[layout.FORCE_NORM.path]
+    assert f[5, 0] == pytest.approx(np.linalg.norm(samples[5].f_h[:3]), rel=1e-15)
+    assert cols.values[layout.SPEED.path][3, 1] == norm3(samples[3].v)
+    assert np.array_equal(cols.values[layout.EE_POSITION_DES.path][0], samples[0].p_des)
+    for s in layout.FULL_RATE:
+        assert cols.values[s.path].shape == (23, len(s.names))
+
+    stride = plot_stride(500.0, 100.0)
+    assert stride == 5
+    plot = plot_rate(samples, stride)
+    assert list(plot.cycle) == [10, 15, 20, 25]
+    assert np.array_equal(plot.values[layout.WHEELS.path][0], samples[3].wheels_cmd)
+    assert np.array_equal(plot.values[layout.BASE_TWIST.path][1], samples[8].qd_cmd[6:])
+    for s in layout.PLOT_RATE:
+        assert plot.values[s.path].shape == (4, len(s.names))
+
+
+# -- the publisher --------------------------------------------------------------------------
+def test_put_never_blocks_while_the_sink_is_stuck_and_drops_are_counted() -> None:
+    gate = threading.Event()
+    sink = RecordingSink(gate)
+    pub = Publisher(sink, queue_size=50, scene_rate_hz=200.0)
+    pub.start()
+    try:
+        assert pub.put(synthetic_sample(0))
+        assert sink.entered.wait(WAIT)  # the publisher thread is now stuck inside the sink
+        results = [pub.put(s) for s in synthetic_samples(500, start=1)]
+        # Every put returned (we are here), the queue kept exactly its capacity:
+        assert results.count(True) == 50 and results.count(False) == 450
+        assert pub.queue.dropped == 450 and len(pub.queue) == 50
+    finally:
+        gate.set()
+        pub.close()
+    assert pub.published == 51 == pub.queue.accepted
+    assert sink.closed == 1
+    cycles, _ = sink.rows(layout.ENERGY.path)
+    assert list(cycles) == list(range(0, 51))
+    dropped_cycles, dropped = sink.rows(layout.DROPPED.path)
+    assert dropped[-1, 0] == 450
+
+
+def test_the_loop_never_waits_on_a_stuck_publisher() -> None:
+    """A real CycleLoop puts a sample every cycle into a publisher whose sink hangs:
+    the loop keeps cycling and the queue counts what it could not hold."""
+    gate = threading.Event()
+    sink = RecordingSink(gate)
+    pub = Publisher(sink, queue_size=64, scene_rate_hz=100.0)
+    pub.start()
+    loop = CycleLoop(lambda tick: pub.put(synthetic_sample(tick.index)), rate_hz=1000.0,
+                     spin_margin=0.0)
+    loop.start()
+    try:
+        assert sink.entered.wait(WAIT)
+        target = 64 + 400
+        done = threading.Event()
+
+        def watch() -> None:
+            while loop.cycles < target and loop.running:
+                done.wait(0.01)
+            done.set()
+
+        threading.Thread(target=watch, daemon=True).start()
+        assert done.wait(WAIT)
+        assert loop.cycles >= target
+        assert pub.queue.dropped > 0
+        assert pub.queue.accepted + pub.queue.dropped >= target
+        assert len(pub.queue) == 64
+    finally:
+        loop.join(WAIT)
+        gate.set()
+        pub.close()
+    assert loop.error is None
+
+
+def test_flush_sends_scene_events_timing_and_state_changes() -> None:
+    ring = TimingRing(64)
+    for i in range(10):
+        ring.record(1_000_000 + i * 2_000_000, 5_000 + i, 100_000 + i, 1_800_000, 0)
+    sink = RecordingSink()
+    pub = Publisher(sink, timing=ring, origin_ns=1_000_000, scene=CountScene())
+    pub._timing_next = 0  # as if started before the ring's first cycle
+    sink.open()
+    samples = list(synthetic_samples(10))
+    samples[6] = samples[6]._replace(safety="fault")
+    for s in samples:
+        pub.put(s)
+    pub.post_event(Event(3, 0.006, "hello"))
+    pub.flush()
+    cyc, timing = sink.rows(layout.LOOP_TIMING.path)
+    assert list(cyc) == list(range(10))
+    assert timing[2].tolist() == [100.002, 1800.0, 5.002]
+    tcols = next(c for c in sink.columns if layout.LOOP_TIMING.path in c.values)
+    assert tcols.time_ns[3] == 6_000_000
+    assert sink.scenes == [9]
+    texts = [e.text for e in sink.events]
+    assert texts[0] == "mode=min_energy safety=armed"
+    assert "mode=min_energy safety=fault" in texts and "hello" in texts
+    assert [e.cycle for e in sink.events if "safety" in e.text] == [0, 6, 7]
+    pub.flush()  # nothing new: no duplicate timing rows, no scene
+    assert len(sink.rows(layout.LOOP_TIMING.path)[0]) == 10 and sink.scenes == [9]
+
+
+def test_a_sink_error_is_stored_and_reraised_by_close_and_put_keeps_working() -> None:
+    sink = RecordingSink(fail_after=0)
+    pub = Publisher(sink, queue_size=8, scene_rate_hz=200.0)
+    pub.start()
+    pub.put(synthetic_sample(0))
+    assert not pub.wait_published(1, WAIT)
+    assert isinstance(pub.error, RuntimeError)
+    assert all(isinstance(pub.put(s), bool) for s in synthetic_samples(20))
+    assert pub.queue.dropped > 0
+    with pytest.raises(RuntimeError, match="sink broke"):
+        pub.close()
+    pub.close()  # idempotent
+    assert sink.closed == 1
+
+
+def test_telemetry_off_imports_no_rerun() -> None:
+    code = (
+        "import sys\n"
+        "from mmctl.config import default_config\n"
+        "from mmctl.telemetry.service import TelemetryService, destinations_from\n"
+        "import mmctl.telemetry.publisher, mmctl.telemetry.recording, mmctl.telemetry.trial\n"
+        "svc = TelemetryService(default_config(), destinations_from(default_config()))\n"
+        "svc.start()\n"
+        "assert svc.hook() is None and svc.publisher is None\n"
+        "assert 'rerun' not in sys.modules, 'rerun imported'\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
