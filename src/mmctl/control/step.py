@@ -74,14 +74,15 @@ def _frozen(a: Vec) -> Vec:
     return a
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class ControllerState:
     """Everything that carries over from one cycle to the next (immutable).
 
     v: (6,) admittance twist [m/s, rad/s]; qdot: (9,) previous command after limits;
     mode: selected strategy; switch: sub-mode used when ``mode`` is SWITCH;
     weights: blend weight of each solver in :data:`SOLVERS` (sum 1; one-hot when no
-    cross-fade is running); cycle: number of steps taken.
+    cross-fade is running); cycle: number of steps taken.  (Compared by identity:
+    the fields hold arrays.)
     """
 
     v: Vec

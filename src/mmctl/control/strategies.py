@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmctl.config import Config
-from mmctl.control.idk import min_energy, min_energy_block, weighted_dls
+from mmctl.control.idk import min_energy, min_energy_block, solve_spd, weighted_dls
 from mmctl.control.limits import Limits
 from mmctl.control.qp import box_qp
 from mmctl.model.robot import Kinematics
@@ -117,7 +117,8 @@ class ConstrainedMinEnergy(IdkStrategy):
     returned as is.  Otherwise the task becomes the stiff penalty
     ``rho |J qd - v_d|^2 / 2`` (``idk.constrained.task_weight``) so the QP stays
     feasible when the bounds cannot produce v_d, and the box QP is solved by active
-    set, warm-started from the clipped unconstrained solution.
+    set, warm-started from the clipped unconstrained solution.  A polish step then
+    re-solves the exact task on the free coordinates with the active bounds fixed.
     """
 
     name = "constrained-min-energy"
@@ -146,12 +147,36 @@ class ConstrainedMinEnergy(IdkStrategy):
             H = np.zeros((9, 9))
             H[:6, :6] = k.M_a
             H[6, 6], H[7, 7], H[8, 8] = k.M_b
-        g = -(H @ p.z)
-        H += self.rho * (k.J.T @ k.J)
-        g -= self.rho * (k.J.T @ p.v_d)
-        res = box_qp(H, g, lb, ub, x0=x, max_iter=self.max_iter)
+        g = -(H @ p.z) - self.rho * (k.J.T @ p.v_d)
+        res = box_qp(H + self.rho * (k.J.T @ k.J), g, lb, ub, x0=x, max_iter=self.max_iter)
         self.last_iterations = res.iterations
-        return res.x
+        return self._polish(H, k.J, p, res.x, res.active != 0, lb, ub)
+
+    def _polish(self, M: Vec, J: Vec, p: Problem, x: Vec, act: NDArray[np.bool_],
+                lb: Vec, ub: Vec) -> Vec:
+        """With the active set found, solve the *exact* task on the free variables.
+
+        ``min |x_F - z|_M`` s.t. ``J_F x_F = v_d - J_A x_A`` (a min-energy problem on the
+        free coordinates); kept if it stays in the box and tracks v_d at least as well.
+        """
+        free = ~act
+        if int(free.sum()) < 6:
+            return x
+        x_a = x[act]
+        M_ff = M[np.ix_(free, free)]
+        z_f = p.z[free] + solve_spd(M_ff, M[np.ix_(free, act)] @ (p.z[act] - x_a))
+        r = p.v_d - J[:, act] @ x_a
+        x_f = min_energy(J[:, free], M_ff, r, z_f,
+                         singular_threshold=self.unconstrained.thr,
+                         max_damping=self.unconstrained.damp)
+        out = x.copy()
+        out[free] = x_f
+        tol = 1e-12
+        if not (np.all(out >= lb - tol) and np.all(out <= ub + tol)):
+            return x
+        if np.abs(J @ out - p.v_d).max() > np.abs(J @ x - p.v_d).max():
+            return x
+        return np.clip(out, lb, ub)
 
 
 def make_strategies(cfg: Config, limits: Limits) -> dict[str, IdkStrategy]:
