@@ -41,6 +41,7 @@ status, saturation and staleness; this module re-checks staleness and range for 
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -110,13 +111,21 @@ class WrenchProcessor:
         self.dt = float(dt)
         self.tau = 1.0 / (2.0 * np.pi * cfg.lowpass_cutoff)
         self.alpha = float(np.exp(-self.dt / self.tau))
-        self._mass = cfg.handle_mass
-        self._com = np.asarray(cfg.handle_com, dtype=np.float64)
-        self._weight_base = np.array((0.0, 0.0, -cfg.handle_mass * G0))
-        self._point = np.asarray(control_point, dtype=np.float64).reshape(3)
+        # decided once here, so that step() is a handful of small matrix products:
+        # g(R) = -m g0 [I; [c]x] R^T e_z = gravity_map @ R[2, :]
+        com = np.asarray(cfg.handle_com, dtype=np.float64)
+        self._gravity_map = -cfg.handle_mass * G0 * np.vstack((np.eye(3), _skew(com)))
+        # sensor-frame wrench -> torque about the control point: t_P = t - [p]x f
+        shift = np.eye(6)
+        shift[3:, :3] = -_skew(np.asarray(control_point, dtype=np.float64).reshape(3))
+        self._shift = shift
         self._range = np.array(cfg.range_force + cfg.range_torque, dtype=np.float64)
         self._mask = np.array(cfg.axis_mask, dtype=np.float64)
-        self._zero6 = np.zeros(6)
+        self._f_limit = cfg.force_limit
+        self._t_limit = cfg.torque_limit
+        self._db_f = cfg.deadband_force
+        self._db_t = cfg.deadband_torque
+        self._stale = cfg.stale_timeout
 
     def initial_state(self) -> WrenchState:
         """No bias, filter at rest, no sample seen."""
@@ -131,9 +140,7 @@ class WrenchProcessor:
 
     def gravity_wrench(self, r_base_sensor: ArrayLike) -> Vec:
         """(6,) the handle's weight as the sensor measures it, sensor frame [N, N m]."""
-        r = np.asarray(r_base_sensor, dtype=np.float64)
-        f = r.T @ self._weight_base
-        return np.concatenate((f, np.cross(self._com, f)))
+        return self._gravity_map @ np.asarray(r_base_sensor, dtype=np.float64)[2]
 
     def step(self, state: WrenchState, wrench: Wrench, r_base_sensor: ArrayLike,
              now: float) -> tuple[WrenchState, WrenchOutput]:
@@ -141,60 +148,69 @@ class WrenchProcessor:
         raw = wrench.as_array()
         r = np.asarray(r_base_sensor, dtype=np.float64)
         fresh = wrench.sequence != state.last_sequence
-        if not (np.all(np.isfinite(raw)) and np.all(np.isfinite(r)) and np.isfinite(now)):
+        in_range = bool((np.abs(raw) <= self._range).all())  # False for NaN too
+        if not (in_range or np.isfinite(raw).all()) or not (
+                np.isfinite(r).all() and math.isfinite(now)):
             return state, self._fault(raw, FaultCause.NON_FINITE, fresh, state,
                                       raw=raw.tolist(), sequence=wrench.sequence)
         last_fresh = wrench.timestamp if fresh else state.last_fresh
         age = now - last_fresh
-        if age > self.cfg.stale_timeout:
+        if age > self._stale:
             return state, self._fault(raw, FaultCause.SENSOR_STALE, fresh, state,
                                       age_ms=round(age * 1e3, 2), sequence=wrench.sequence)
-        state = state._replace(last_sequence=wrench.sequence, last_fresh=last_fresh)
-        over = np.abs(raw) > self._range
-        if over.any():
-            axis = int(np.argmax(over))
+        if not in_range:
+            axis = int(np.argmax(np.abs(raw) > self._range))
+            state = state._replace(last_sequence=wrench.sequence, last_fresh=last_fresh)
             return state, self._fault(raw, FaultCause.SENSOR_SATURATION, fresh, state,
                                       axis=axis, value=float(raw[axis]))
 
-        g = self.gravity_wrench(r)
+        comp = raw - self._gravity_map @ r[2]  # raw - g(R), bias not yet removed
         if state.tare_left > 0:
+            tare_left, tare_sum, bias = state.tare_left, state.tare_sum, state.bias
+            filtered = state.filtered
             if fresh:
-                tare_sum = state.tare_sum + (raw - g)
-                left = state.tare_left - 1
-                if left == 0:
-                    state = state._replace(bias=tare_sum / state.tare_total,
-                                           filtered=np.zeros(6), tare_left=0,
-                                           tare_sum=np.zeros(6))
-                else:
-                    state = state._replace(tare_left=left, tare_sum=tare_sum)
-            comp = raw - state.bias - g
-            return state, WrenchOutput(self._zero6.copy(), comp, None, {}, True, fresh)
+                tare_sum = tare_sum + comp
+                tare_left -= 1
+                if tare_left == 0:
+                    bias = tare_sum / state.tare_total
+                    tare_sum = np.zeros(6)
+                    filtered = np.zeros(6)
+            state = WrenchState(bias, filtered, wrench.sequence, last_fresh, tare_left,
+                                state.tare_total, tare_sum)
+            return state, WrenchOutput(np.zeros(6), comp - bias, None, {}, True, fresh)
 
-        comp = raw - state.bias - g
-        f_s = comp[:3]
-        t_s = comp[3:] - np.cross(self._point, f_s)
-        f_b = r @ f_s
-        t_b = r @ t_s
-        f_norm = float(np.linalg.norm(f_b))
-        t_norm = float(np.linalg.norm(t_b))
-        if f_norm > self.cfg.force_limit or t_norm > self.cfg.torque_limit:
+        comp -= state.bias
+        ft = r @ (self._shift @ comp).reshape(2, 3).T  # (3, 2): columns f_b, t_b
+        f_b = ft[:, 0]
+        t_b = ft[:, 1]
+        f_norm = math.sqrt(f_b @ f_b)
+        t_norm = math.sqrt(t_b @ t_b)
+        if f_norm > self._f_limit or t_norm > self._t_limit:
+            state = state._replace(last_sequence=wrench.sequence, last_fresh=last_fresh)
             return state, self._fault(comp, FaultCause.WRENCH_LIMIT, fresh, state,
                                       force=round(f_norm, 3), torque=round(t_norm, 4))
-        u = np.concatenate((_deadband(f_b, f_norm, self.cfg.deadband_force),
-                            _deadband(t_b, t_norm, self.cfg.deadband_torque)))
+        u = np.empty(6)
+        u[:3] = _deadband(f_b, f_norm, self._db_f)
+        u[3:] = _deadband(t_b, t_norm, self._db_t)
         filtered = self.alpha * state.filtered + (1.0 - self.alpha) * u
-        state = state._replace(filtered=filtered)
+        state = WrenchState(state.bias, filtered, wrench.sequence, last_fresh, 0,
+                            state.tare_total, state.tare_sum)
         return state, WrenchOutput(filtered * self._mask, comp, None, {}, False, fresh)
 
     # -- helpers -------------------------------------------------------------------------
 
     def _fault(self, comp: Vec, cause: FaultCause, fresh: bool, state: WrenchState,
                **details: Any) -> WrenchOutput:
-        return WrenchOutput(self._zero6.copy(), comp, cause, details, state.tare_left > 0, fresh)
+        return WrenchOutput(np.zeros(6), comp, cause, details, state.tare_left > 0, fresh)
+
+
+def _skew(v: Vec) -> Vec:
+    """(3, 3) cross-product matrix: ``_skew(a) @ b == a x b``."""
+    return np.array(((0.0, -v[2], v[1]), (v[2], 0.0, -v[0]), (-v[1], v[0], 0.0)))
 
 
 def _deadband(v: Vec, norm: float, d: float) -> Vec:
     """Shrink ``v`` by ``d`` along its direction; zero inside the band."""
     if norm <= d:
-        return np.zeros(3)
+        return 0.0 * v
     return v * ((norm - d) / norm)

@@ -40,9 +40,10 @@ next :meth:`CanForceSensor.read` normally finds both reply frames already queued
 sample is then up to one period old, 2 ms at 500 Hz, against a 53 ms admittance time
 constant).  When the request in flight is older than ``sensor.can.timeout`` (the caller
 paused), its reply would be too old: it is discarded and a fresh request is waited for.
-A request that gets no complete reply within ``timeout`` counts as lost; the previous
-sample is returned again until the newest one is older than
-``sensor.wrench.stale_timeout``, then ``SafetyFault(SENSOR_STALE)`` is raised.
+A request that gets no complete reply within ``timeout`` counts as lost and is sent
+again at once; the previous sample is returned again until the newest one is older than
+``sensor.wrench.stale_timeout``, then ``SafetyFault(SENSOR_STALE)`` is raised.  A read
+blocks at most ``timeout`` (only while replies are missing).
 """
 
 from __future__ import annotations
@@ -259,8 +260,9 @@ class CanForceSensor:
         sample = self._collect(self._pending + self._timeout)  # type: ignore[operator]
         if sample is None:
             self._lost += 1
-            self._pending = None
-            age = time.monotonic() - self._last_fresh
+            now = time.monotonic()
+            self._send_request(now)  # ask again at once; the next read waits for it
+            age = now - self._last_fresh
             if age > self._stale or self._last is None:
                 raise SafetyFault(FaultCause.SENSOR_STALE, age_ms=round(age * 1e3, 2),
                                   lost=self._lost, link=self.link)
