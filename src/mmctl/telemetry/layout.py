@@ -100,10 +100,14 @@ def blueprint(history_s: float = 20.0) -> Any:
     def plot(name: str, *paths: str) -> Any:
         contents = [f"/{p}" for p in paths]
         return rrb.TimeSeriesView(name=name, origin="/plots", contents=contents,
-                                  time_ranges=window)
+                                  time_ranges=window,
+                                  plot_legend=rrb.PlotLegend("LeftTop", visible=True))
 
+    camera = rrb.EyeControls3D(position=(-2.6, -2.4, 2.2), look_target=(0.4, 0.0, 0.6),
+                               eye_up=(0.0, 0.0, 1.0), tracking_entity=f"/{BASE}")
     left = rrb.Vertical(
-        rrb.Spatial3DView(name="Robot", origin=f"/{WORLD}"),
+        rrb.Spatial3DView(name="Robot (follows the base)", origin=f"/{WORLD}",
+                          eye_controls=camera),
         rrb.TextLogView(name="Events", origin=f"/{EVENTS}"),
         row_shares=[3, 1],
     )
@@ -122,7 +126,7 @@ def blueprint(history_s: float = 20.0) -> Any:
     )
     return rrb.Blueprint(
         rrb.Horizontal(left, right, column_shares=[2, 3]),
-        rrb.TimePanel(timeline=TIMELINE_TIME, state="collapsed"),
+        rrb.TimePanel(timeline=TIMELINE_TIME, state="collapsed", play_state="following"),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
     )

@@ -1,0 +1,131 @@
+"""Measure what telemetry costs the control loop: the same body, telemetry off vs on.
+
+:func:`compare` runs a real :class:`~mmctl.runtime.loop.CycleLoop` for several phases in
+one process, alternating off / on (off, on, off, on, ...), each phase with a fresh
+timing ring, and pools the per-cycle timings of each condition.  "On" means the whole
+path: the body builds the sample and calls the hook (trial tracker + ``put``), and the
+publisher thread batches to a real rerun sink (an ``.rrd`` file) at the configured
+rates.  `mmctl bench loop --telemetry` and ``tools/telemetry_bench.py`` print the result.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from mmctl.config import Config
+from mmctl.runtime.loop import CycleLoop, Tick
+from mmctl.runtime.timing import TimingRing, TimingSnapshot, TimingStats, summarize
+from mmctl.telemetry.rerun_sink import Destinations
+from mmctl.telemetry.service import Hook, TelemetryService
+
+#: body_for(hook, origin_ns) -> the loop body; hook is None when telemetry is off
+BodyFactory = Callable[[Hook | None, int], Callable[[Tick], None]]
+
+
+class Phase(NamedTuple):
+    """One phase: telemetry on or off, its timing snapshot and publisher counters."""
+
+    telemetry: bool
+    snapshot: TimingSnapshot
+    published: int
+    dropped: int
+    flush_max_us: float
+
+
+def _pool(phases: list[Phase], on: bool) -> TimingStats:
+    snaps = [p.snapshot for p in phases if p.telemetry == on]
+    cat = [np.concatenate([getattr(s, f) for s in snaps]) for f in
+           ("deadline_ns", "latency_ns", "compute_ns", "slack_ns", "missed")]
+    return summarize(TimingSnapshot(*cat, first_index=0))
+
+
+def run_phase(cfg: Config, body_for: BodyFactory, seconds: float, telemetry: bool,
+              record: Path | None) -> Phase:
+    """One loop run of ``seconds`` [s]; with telemetry, a publisher recording to ``record``."""
+    import time
+
+    cycles = int(seconds * cfg.loop.rate_hz)
+    ring = TimingRing(cycles + 16)
+    service = TelemetryService(cfg, Destinations(record=str(record)) if telemetry else None)
+    loop_box: dict[str, Any] = {}
+    origin = time.perf_counter_ns()
+    service.start(ring, origin)
+    body = body_for(service.hook(), origin)
+
+    def counted(tick: Tick) -> None:
+        body(tick)
+        if tick.index + 1 >= cycles:
+            loop_box["loop"].stop()
+
+    loop = CycleLoop(counted, rate_hz=cfg.loop.rate_hz, spin_margin=cfg.loop.spin_margin,
+                     max_consecutive_misses=10**9, max_total_misses=10**9, ring=ring,
+                     rt_priority=cfg.loop.rt_priority, cpu_affinity=cfg.loop.cpu_affinity)
+    loop_box["loop"] = loop
+    loop.start()
+    loop.wait(seconds * 20 + 30)
+    loop.join(5.0)
+    pub = service.publisher
+    service.close()
+    stats = pub.stats() if pub is not None else {}
+    if pub is not None and pub.error is not None:
+        raise pub.error
+    return Phase(telemetry, ring.snapshot(), int(stats.get("published", 0)),
+                 int(stats.get("dropped", 0)), float(stats.get("flush_max_us", 0.0)))
+
+
+def compare(cfg: Config, body_for: BodyFactory, seconds: float = 10.0, phases: int = 4,
+            record_dir: Path | None = None) -> dict[str, Any]:
+    """Alternate ``phases`` runs (off first) of ``seconds / phases`` each; pooled figures.
+
+    Returns {"off": stats, "on": stats, "compute_p99_growth": fraction,
+    "misses_off"/"misses_on", "published", "dropped", "flush_max_us", "phases"}.
+    """
+    sys.setswitchinterval(cfg.loop.switch_interval)
+    tmp = None
+    if record_dir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="mmctl-telemetry-bench-")
+        record_dir = Path(tmp.name)
+    try:
+        done = []
+        for i in range(max(2, phases)):
+            on = i % 2 == 1
+            rec = record_dir / f"bench-phase{i}.rrd" if on else None
+            done.append(run_phase(cfg, body_for, seconds / max(2, phases), on, rec))
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    off, on = _pool(done, False), _pool(done, True)
+    growth = (on.compute_p99_us - off.compute_p99_us) / off.compute_p99_us if off.cycles else 0.0
+    return {
+        "off": off.as_dict(),
+        "on": on.as_dict(),
+        "compute_p99_growth": round(growth, 4),
+        "misses_off": off.missed,
+        "misses_on": on.missed,
+        "published": sum(p.published for p in done),
+        "dropped": sum(p.dropped for p in done),
+        "flush_max_us": max(p.flush_max_us for p in done),
+        "phases": len(done),
+    }
+
+
+def format_report(r: dict[str, Any]) -> str:
+    """A few lines for the terminal."""
+    lines = [f"{'telemetry':>9} {'cycles':>7} {'compute p50':>11} {'p99':>8} {'max':>8} "
+             f"{'latency p50':>11} {'p99':>8} {'max':>8} {'missed':>6}  [us]"]
+    for key in ("off", "on"):
+        s = r[key]
+        lines.append(f"{key:>9} {s['cycles']:>7} {s['compute_p50_us']:>11.1f} "
+                     f"{s['compute_p99_us']:>8.1f} {s['compute_max_us']:>8.1f} "
+                     f"{s['latency_p50_us']:>11.1f} {s['latency_p99_us']:>8.1f} "
+                     f"{s['latency_max_us']:>8.1f} {s['missed']:>6}")
+    lines.append(f"compute p99 growth with telemetry: {100 * r['compute_p99_growth']:+.1f} %; "
+                 f"published {r['published']} samples, dropped {r['dropped']}, "
+                 f"longest flush {r['flush_max_us']:.0f} us ({r['phases']} alternating phases)")
+    return "\n".join(lines)
