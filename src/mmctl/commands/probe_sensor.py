@@ -31,7 +31,7 @@ import dataclasses
 import json
 import sys
 import time
-from typing import Any
+from typing import Any, TextIO, cast
 
 SIMULATED_WRENCH = (2.0, -1.0, 10.0, 0.1, -0.05, 0.02)
 
@@ -60,7 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _sensor_config(args: argparse.Namespace) -> Any:
     from mmctl.config import default_config, load_config
 
-    cfg = (load_config(args.config) if args.config else default_config()).sensor
+    cfg: Any = (load_config(args.config) if args.config else default_config()).sensor
     can_over = {k: v for k, v in (("interface", args.interface), ("channel", args.channel),
                                   ("base_id", args.base_id)) if v is not None}
     rdt_over = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
@@ -85,8 +85,8 @@ def _start_fake(cfg: Any) -> tuple[Any, Any]:
         if cfg.can.interface != "virtual":
             raise ConfigError("--interface", cfg.can.interface,
                               "--simulate runs the fake on python-can's 'virtual' interface only")
-        fake = FakeFtCanSensor(source, channel=cfg.can.channel, base_id=cfg.can.base_id).start()
-        return fake, cfg
+        can_fake = FakeFtCanSensor(source, channel=cfg.can.channel, base_id=cfg.can.base_id)
+        return can_fake.start(), cfg
     from mmctl.sim.fake_rdt import FakeRdtServer
 
     fake = FakeRdtServer(source, host="127.0.0.1", port=0,
@@ -161,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     from mmctl.runtime.logging import setup_logging
     from mmctl.transports.sensor import open_sensor
 
-    setup_logging("warning", stream=_Stderr())  # stdout carries the result only
+    setup_logging("warning", stream=cast(TextIO, _Stderr()))  # stdout: the result only
     if args.samples <= 0:
         raise ConfigError("--samples", args.samples, "must be > 0")
     if args.rate < 0:

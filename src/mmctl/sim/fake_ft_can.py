@@ -115,7 +115,7 @@ class FakeFtCanSensor:
 
     # -- lifecycle ---------------------------------------------------------------------
 
-    def start(self) -> FakeFtCanSensor:
+    def start(self) -> Self:
         """Open the bus and start answering."""
         if self._thread is not None:
             return self

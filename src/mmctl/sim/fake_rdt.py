@@ -103,7 +103,7 @@ class FakeRdtServer:
 
     # -- lifecycle ---------------------------------------------------------------------
 
-    def start(self) -> FakeRdtServer:
+    def start(self) -> Self:
         """Bind the socket and start serving."""
         if self._thread is not None:
             return self

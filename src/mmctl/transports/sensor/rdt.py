@@ -280,5 +280,7 @@ class RdtForceSensor:
                 self._send(resend)
                 next_resend = now + 0.1
             wake = deadline if resend is None else min(deadline, next_resend)
-            select.select([self._sock], [], [], max(0.0, wake - now))
+            sock = self._sock
+            assert sock is not None
+            select.select([sock], [], [], max(0.0, wake - now))
             self._drain()
