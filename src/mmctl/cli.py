@@ -26,9 +26,12 @@ COMMANDS: list[tuple[str, str, str]] = [
 
 #: group -> (help, [(sub-command, module, one-line help)])
 GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
-    "bench": ("benchmarks that print figures", []),
+    "bench": ("benchmarks that print figures", [
+        ("idk", "mmctl.commands.bench_idk", "time the IDK strategies vs the paper's explicit inverse"),
+    ]),
     "probe": ("bring-up probes for one device", [
         ("sensor", "mmctl.commands.probe_sensor", "read the force/torque sensor, print the wrench"),
+        ("base", "mmctl.commands.probe_base", "enable the base drives, report states, drive a twist"),
     ]),
 }
 

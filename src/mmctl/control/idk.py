@@ -38,6 +38,7 @@ _potrf = lapack.dpotrf
 _potrs = lapack.dpotrs
 _posv = lapack.dposv
 _syev = lapack.dsyev
+_trtri = lapack.dtrtri
 
 #: Defaults equal to the ``idk:`` config defaults.
 SINGULAR_THRESHOLD = 1e-3
@@ -45,7 +46,12 @@ MAX_DAMPING = 1e-2
 
 
 class TaskSolve(NamedTuple):
-    """A damped task-space solve: ``x`` and the extreme eigenvalues of the task matrix."""
+    """A damped task-space solve: ``x`` and bounds on the task matrix's eigenvalues.
+
+    When no damping was needed, ``lam_min`` is the lower bound ``1 / trace(A^-1)``
+    and ``lam_max`` the upper bound ``trace(A)`` (cheap, from the Cholesky factor);
+    otherwise both are the exact extreme eigenvalues.
+    """
 
     x: Vec
     lam_min: float
@@ -75,7 +81,20 @@ def solve_spd(a: Vec, b: Vec) -> Vec:
 def damped_task_solve(
     a: Vec, r: Vec, threshold: float = SINGULAR_THRESHOLD, max_damping: float = MAX_DAMPING
 ) -> TaskSolve:
-    """Solve ``(a + delta I) x = r`` for a PSD task matrix ``a`` (6, 6), damped as documented."""
+    """Solve ``(a + delta I) x = r`` for a PSD task matrix ``a`` (6, 6), damped as documented.
+
+    Fast path: Cholesky of ``a`` and the bound ``lam_min >= 1 / trace(a^-1)`` (from the
+    inverse factor); only when that bound is below ``threshold`` are the eigenvalues
+    computed (LAPACK ``syev``) to set the damping.
+    """
+    L, info = _potrf(a, lower=1, clean=1)
+    if info == 0:
+        Li, info = _trtri(L, lower=1)
+        f = Li.ravel()
+        tr_inv = float(f @ f)  # trace(a^-1) = |L^-1|_F^2
+        if info == 0 and tr_inv * threshold <= 1.0:
+            x, _ = _potrs(L, r, lower=1)
+            return TaskSolve(x, 1.0 / tr_inv, float(a.trace()), 0.0)
     w, _, info = _syev(a, compute_v=0)
     if info != 0 or not np.isfinite(w[0]):
         return TaskSolve(np.full(r.shape, np.nan), float("nan"), float("nan"), 0.0)
@@ -132,21 +151,40 @@ def min_energy_block(
 ) -> TaskSolve:
     """:func:`min_energy` for ``M = blockdiag(M_a (6, 6), diag(m_b) (3,))``, J (6, 9).
 
+    Only the 6x6 ``M_a`` is factorised; ``J_b`` must have the planar-base structure
+    of :func:`mmctl.model.robot.base_jacobian` (columns e_x, e_y and
+    ``(-p_y, p_x, 0, 0, 0, 1)``), whose term ``J_b M_b^-1 J_b^T`` is written out.
     Returns the (9,) solution as ``x`` plus the eigenvalue range of ``J M^-1 J^T``.
     """
-    Ja = J[:, :6]
-    Jb = J[:, 6:]
     L, info = _potrf(M_a, lower=1, clean=0)
     if info != 0:
         return TaskSolve(np.full(9, np.nan), float("nan"), float("nan"), 0.0)
+    Ja = J[:, :6]
     Ya, _ = _potrs(L, Ja.T, lower=1)  # M_a^-1 J_a^T (6, 6)
-    Yb = Jb.T / m_b[:, None]  # M_b^-1 J_b^T (3, 6)
-    A = Ja @ Ya + Jb @ Yb
+    A = Ja @ Ya
+    mx, my, i_z = m_b.tolist()
+    px, py = float(J[1, 8]), -float(J[0, 8])
+    imx, imy, iz = 1.0 / mx, 1.0 / my, 1.0 / i_z
+    a01 = -py * px * iz
+    a05, a15 = -py * iz, px * iz
+    A[0, 0] += imx + py * py * iz
+    A[1, 1] += imy + px * px * iz
+    A[5, 5] += iz
+    A[0, 1] += a01
+    A[1, 0] += a01
+    A[0, 5] += a05
+    A[5, 0] += a05
+    A[1, 5] += a15
+    A[5, 1] += a15
     r = v_d if qdot_null is None else v_d - J @ qdot_null
     sol = damped_task_solve(A, r, singular_threshold, max_damping)
+    lam = sol.x
     x = np.empty(9)
-    x[:6] = Ya @ sol.x
-    x[6:] = Yb @ sol.x
+    x[:6] = Ya @ lam
+    l0, l1, _, _, _, l5 = lam.tolist()
+    x[6] = l0 * imx
+    x[7] = l1 * imy
+    x[8] = (-py * l0 + px * l1 + l5) * iz
     if qdot_null is not None:
         x += qdot_null
     return sol._replace(x=x)

@@ -40,55 +40,79 @@ def box_qp(
     x0: Vec | None = None,
     max_iter: int = 50,
     tol: float = 1e-12,
+    active: NDArray[np.int8] | None = None,
 ) -> BoxQpResult:
-    """Solve the box QP above; ``x0`` (n,) is a starting guess (projected on the box)."""
+    """Solve the box QP above.
+
+    x0: (n,) starting guess (projected on the box; default the unconstrained
+    minimiser); active: a working set to start from (e.g. the previous cycle's), by
+    default the bounds that clipping ``x0`` touched.  The bookkeeping is plain Python
+    (n is small); numpy only does the products and the Cholesky solves.
+    """
     n = g.shape[0]
     if x0 is None:
         x0 = solve_spd(H, -g)
     x = np.clip(x0, lb, ub)
-    state = np.zeros(n, dtype=np.int8)
-    state[x <= lb] = -1
-    state[x >= ub] = 1
-    equal = lb == ub
-    state[equal] = -1
-    scale = max(1.0, float(np.max(np.abs(g))))
-    at_min = False  # x minimises over the current free set (skip the re-solve)
+    lo, hi = lb.tolist(), ub.tolist()
+    xs = x.tolist()
+    if active is not None:
+        st = [int(a) for a in active.tolist()]
+        for i in range(n):
+            if st[i] < 0:
+                xs[i] = lo[i]
+            elif st[i] > 0:
+                xs[i] = hi[i]
+    else:
+        st = [-1 if xs[i] <= lo[i] else (1 if xs[i] >= hi[i] else 0) for i in range(n)]
+    equal = [lo[i] == hi[i] for i in range(n)]
+    for i in range(n):
+        if equal[i]:
+            st[i], xs[i] = -1, lo[i]
+    gl = g.tolist()
+    scale = max(1.0, max(abs(v) for v in gl))
+    at_min = False  # xs minimises over the current free set (skip the re-solve)
     for it in range(1, max_iter + 1):
-        free = state == 0
-        if free.any() and not at_min:
-            fixed = ~free
-            rhs = -g[free]
-            if fixed.any():
-                rhs = rhs - H[np.ix_(free, fixed)] @ x[fixed]
-            target = solve_spd(H[np.ix_(free, free)], rhs)
-            p = target - x[free]
-        else:
-            p = np.zeros(0)
-        if at_min or p.size == 0:
-            at_min = False
-            grad = H @ x + g
-            mult = np.where(state == -1, grad, np.where(state == 1, -grad, 0.0))
-            mult[equal] = 0.0  # a variable with lb == ub can never be released
-            worst = int(np.argmin(mult))
-            if mult[worst] >= -tol * scale:
-                return BoxQpResult(x, it, True, state)
-            state[worst] = 0
+        free = [i for i in range(n) if st[i] == 0]
+        if free and not at_min:
+            xa = np.array(xs)
+            fixed_part = xa.copy()
+            fixed_part[free] = 0.0
+            rhs = -(g + H @ fixed_part)
+            target = solve_spd(H.take(free, 0).take(free, 1), rhs[free]).tolist()
+            # ratio test: the largest step in [0, 1] toward target inside the box
+            alpha, block, side = 1.0, -1, 0
+            for k, i in enumerate(free):
+                p = target[k] - xs[i]
+                if p > 0.0 and xs[i] + p > hi[i]:
+                    a = (hi[i] - xs[i]) / p
+                    if a < alpha:
+                        alpha, block, side = a, i, 1
+                elif p < 0.0 and xs[i] + p < lo[i]:
+                    a = (lo[i] - xs[i]) / p
+                    if a < alpha:
+                        alpha, block, side = a, i, -1
+            if block < 0:
+                for k, i in enumerate(free):
+                    xs[i] = target[k]
+                at_min = True
+                continue
+            alpha = max(alpha, 0.0)
+            for k, i in enumerate(free):
+                xs[i] += alpha * (target[k] - xs[i])
+            xs[block] = hi[block] if side > 0 else lo[block]
+            st[block] = side
             continue
-        xf = x[free]
-        # largest step in [0, 1] keeping the free variables in the box
-        lbf, ubf = lb[free], ub[free]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(p > 0, (ubf - xf) / p, np.where(p < 0, (lbf - xf) / p, np.inf))
-        k = int(np.argmin(ratio))
-        alpha = float(ratio[k])
-        if alpha >= 1.0:
-            x[free] = target
-            at_min = True
-            continue
-        alpha = max(alpha, 0.0)
-        xf = xf + alpha * p
-        idx = np.flatnonzero(free)[k]
-        xf[k] = ubf[k] if p[k] > 0 else lbf[k]
-        x[free] = xf
-        state[idx] = 1 if p[k] > 0 else -1
-    return BoxQpResult(np.clip(x, lb, ub), max_iter, False, state)
+        at_min = False
+        grad = (H @ np.array(xs) + g).tolist()
+        worst, worst_m = -1, -tol * scale
+        for i in range(n):
+            if st[i] == 0 or equal[i]:
+                continue
+            m = grad[i] if st[i] < 0 else -grad[i]
+            if m < worst_m:
+                worst, worst_m = i, m
+        if worst < 0:
+            return BoxQpResult(np.array(xs), it, True, np.array(st, dtype=np.int8))
+        st[worst] = 0
+    x = np.clip(np.array(xs), lb, ub)
+    return BoxQpResult(x, max_iter, False, np.array(st, dtype=np.int8))

@@ -38,6 +38,7 @@ NA = 6  #: arm joints
 FRAMES = ("base", "arm_base", "flange", "sensor", "tool")
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+_EMPTY = np.zeros((0, 0))
 
 
 class Kinematics(NamedTuple):
@@ -107,8 +108,8 @@ class RobotModel:
         self.whole_data: pin.Data | None = None
         self._q_whole = np.zeros(4 + NA)
         self._q_whole[2] = 1.0  # planar joint q = (x, y, cos, sin)
-        self._jb = np.zeros((6, 3))
-        self._J = np.zeros((6, NQ))
+        self._J_template = np.zeros((6, NQ))
+        self._J_template[:, NA:] = base_jacobian(np.zeros(3))
 
     # --- construction --------------------------------------------------------
     def _add_tool_frames(self, model: pin.Model) -> None:
@@ -192,13 +193,14 @@ class RobotModel:
         model, data = self.arm, self.arm_data
         pin.computeJointJacobians(model, data, q_a)
         pose = pin.updateFramePlacement(model, data, self._tool)
-        p_base = pose.translation.copy()
-        J = np.empty((6, NQ))
+        p_base = pose.translation  # a fresh array on every call
+        x, y, z = p_base.tolist()
+        J = self._J_template.copy()  # base columns' constant entries preset
         J[:, :NA] = pin.getFrameJacobian(model, data, self._tool, _LWA)
-        J[:, NA:] = base_jacobian(p_base, self._jb)
+        J[0, 8] = -y
+        J[1, 8] = x
         c, s = math.cos(q[8]), math.sin(q[8])
-        p = np.array([q[6] + c * p_base[0] - s * p_base[1], q[7] + s * p_base[0] + c * p_base[1],
-                      p_base[2]])
-        M_a = pin.crba(model, data, q_a).copy() if inertia else np.zeros((0, 0))
+        p = np.array((q[6] + c * x - s * y, q[7] + s * x + c * y, z))
+        M_a = pin.crba(model, data, q_a) if inertia else _EMPTY
         M_full = self.coupled_inertia(q_a) if (inertia and self.full_inertia) else None
-        return Kinematics(J, M_a, self.M_b, M_full, p_base, pose.rotation.copy(), p)
+        return Kinematics(J, M_a, self.M_b, M_full, p_base, pose.rotation, p)
