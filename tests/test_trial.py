@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from mmctl.telemetry import layout
 from mmctl.telemetry.batch import full_rate
 from mmctl.telemetry.events import Event
-from mmctl.telemetry.recording import Recording, RecordedTrial, recording_metrics
+from mmctl.telemetry.recording import RecordedTrial, Recording, recording_metrics
 from mmctl.telemetry.sample import zero_sample
 from mmctl.telemetry.synthetic import synthetic_samples
 from mmctl.telemetry.trial import TrialError, TrialTracker, compute

@@ -63,7 +63,8 @@ def main() -> int:
     try:
         cmd = [exe, args.rrd, "--bind", "127.0.0.1", "--port", str(free_port()),
                "--window-size", args.size, "--screenshot-to", str(raw)]
-        out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+        out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300,
+                             check=False)
         if out.returncode != 0 or not raw.exists():
             print(out.stderr[-2000:], file=sys.stderr)
             return 1

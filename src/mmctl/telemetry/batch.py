@@ -116,4 +116,4 @@ def plot_rate(samples: Sequence[TelemetrySample], stride: int) -> Columns:
 
 def plot_stride(loop_rate_hz: float, plot_rate_hz: float) -> int:
     """Cycles between two plot rows: round(loop rate / plot rate), at least 1."""
-    return max(1, int(round(loop_rate_hz / plot_rate_hz)))
+    return max(1, round(loop_rate_hz / plot_rate_hz))

@@ -117,8 +117,9 @@ def compare(cfg: Config, body_for: BodyFactory, seconds: float = 10.0, phases: i
 
 def format_report(r: dict[str, Any]) -> str:
     """A few lines for the terminal."""
-    lines = [f"{'telemetry':>9} {'cycles':>7} {'compute p50':>11} {'p99':>8} {'max':>8} "
-             f"{'latency p50':>11} {'p99':>8} {'max':>8} {'missed':>6}  [us]"]
+    header = (f"{'telemetry':>9} {'cycles':>7} {'compute p50':>11} {'p99':>8} {'max':>8} "
+              f"{'latency p50':>11} {'p99':>8} {'max':>8} {'missed':>6}  [us]")
+    lines = [header]
     for key in ("off", "on"):
         s = r[key]
         lines.append(f"{key:>9} {s['cycles']:>7} {s['compute_p50_us']:>11.1f} "

@@ -116,7 +116,7 @@ class Publisher:
             if self.error is not None:
                 raise self.error
 
-    def __enter__(self) -> Publisher:
+    def __enter__(self) -> Publisher:  # noqa: PYI034
         self.start()
         return self
 
@@ -164,7 +164,7 @@ class Publisher:
                     break
                 if time.monotonic() > next_wake + self.wake_period:
                     next_wake = time.monotonic()  # fell behind: do not burst to catch up
-        except BaseException as exc:  # stored, logged, re-raised by close()
+        except BaseException as exc:  # noqa: BLE001 -- stored, logged, re-raised by close()
             self.error = exc
             log.error("telemetry_publisher_failed", error=repr(exc))
         finally:

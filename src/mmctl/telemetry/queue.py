@@ -22,7 +22,7 @@ class DropQueue(Generic[T]):
     written by the producer only; ``taken`` by the consumer only.
     """
 
-    __slots__ = ("capacity", "_items", "accepted", "dropped", "taken")
+    __slots__ = ("_items", "accepted", "capacity", "dropped", "taken")
 
     def __init__(self, capacity: int):
         if capacity <= 0:

@@ -111,7 +111,7 @@ def spawn_viewer(port: int = DEFAULT_VIEWER_PORT, timeout: float = 15.0) -> subp
 class _Column:
     """A ready-made component column (duck-types ``rerun.ComponentColumn``)."""
 
-    __slots__ = ("_desc", "_array")
+    __slots__ = ("_array", "_desc")
 
     def __init__(self, desc: Any, array: Any):
         self._desc = desc
@@ -127,7 +127,7 @@ class _Column:
 class _Index:
     """A ready-made index column (a ``rerun.TimeColumnLike``)."""
 
-    __slots__ = ("_name", "_array")
+    __slots__ = ("_array", "_name")
 
     def __init__(self, name: str, array: Any):
         self._name = name

@@ -68,7 +68,7 @@ def compute(period: float, e_k: Any, f_norm: Any, v_norm: Any, p_final: Any,
 class TrialRows:
     """What a trial collected: per-cycle lists and the last positions (loop thread)."""
 
-    __slots__ = ("trial", "start_cycle", "stop_cycle", "stop_t", "e", "f", "v", "p", "p_des")
+    __slots__ = ("e", "f", "p", "p_des", "start_cycle", "stop_cycle", "stop_t", "trial", "v")
 
     def __init__(self, trial: int):
         self.trial = trial
