@@ -109,8 +109,11 @@ def test_singular_configuration_gives_zero_command_and_a_fault() -> None:
 
 
 def test_outputs_are_consistent(ctl: Controller) -> None:
-    state, _q, outs = _run(ctl, ctl.initial_state(), ctl.q_des.copy(), 100)
-    out = outs[-1]
+    state, q, outs = _run(ctl, ctl.initial_state(), ctl.q_des.copy(), 100)
+    state, out = ctl.step(state, StepInputs(PUSH, q, outs[-1].qdot, T))
+    outs.append(out)
+    assert np.allclose(out.p, ctl.model.position(q), atol=1e-12)
+    assert np.allclose(out.p_des, ctl.p_des(q), atol=1e-12)
     assert np.array_equal(out.qdot_arm, out.qdot[:6])
     assert np.array_equal(out.base_twist, out.qdot[6:])
     assert out.v_d.shape == (6,) and out.p.shape == (3,) and out.p_des.shape == (3,)
@@ -119,6 +122,8 @@ def test_outputs_are_consistent(ctl: Controller) -> None:
     assert 0.0 < out.scale <= 1.0 and 0.0 < out.accel_scale <= 1.0
     # measured energy uses the measured velocities given as input (here the previous command)
     assert out.energy.total == pytest.approx(outs[-2].energy_cmd.total, rel=0.05)
+    with pytest.raises(ValueError, match="f_h \\(6,\\)"):
+        ctl.step(state, StepInputs(np.zeros(3), q, np.zeros(9), T))
     with pytest.raises(UnknownMode, match="valid: 'min-energy'"):
         ctl.set_mode(state, "fastest")
     with pytest.raises(UnknownMode, match="'manipulation', 'locomotion'"):

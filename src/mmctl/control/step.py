@@ -14,7 +14,8 @@ changes) -> qdot_d; limits -> qdot; energies; faults.  On a non-finite number
 (``NON_FINITE``) or a singular configuration (``SINGULAR``: the condition number of
 the whole-body ``J J^T`` above ``safety.max_condition``) the outputs command zero
 velocity, the admittance and the previous command are reset to zero, and ``fault``
-names the cause; :meth:`Controller.step` never raises for these.
+names the cause; :meth:`Controller.step` never raises for these (a non-positive
+``dt`` counts as non-finite; arrays of the wrong shape are a bug and raise ValueError).
 
 Purity: the outputs depend only on ``(state, inputs)``; the controller object only
 holds constants and scratch buffers.  States are frozen dataclasses with read-only
@@ -242,7 +243,8 @@ class Controller:
         dt = float(inp.dt)
         weights = self._blend(state.weights, state.target, dt) if dt > 0.0 else state.weights
         if f_h.shape != (6,) or q.shape != (9,) or qd_meas.shape != (9,):
-            return self._fault(state, FaultCause.NON_FINITE, math.nan, weights)
+            raise ValueError(f"step inputs must be f_h (6,), q (9,), qdot (9,); got "
+                             f"{f_h.shape}, {q.shape}, {qd_meas.shape}")  # a bug, not a fault
         # x @ x is finite iff every entry is (for physically sized values): one cheap check
         if not (math.isfinite(f_h @ f_h + q @ q + qd_meas @ qd_meas + dt) and dt > 0.0):
             return self._fault(state, FaultCause.NON_FINITE, math.nan, weights)
