@@ -40,9 +40,11 @@ class Phase(NamedTuple):
 
 def _pool(phases: list[Phase], on: bool) -> TimingStats:
     snaps = [p.snapshot for p in phases if p.telemetry == on]
-    cat = [np.concatenate([getattr(s, f) for s in snaps]) for f in
-           ("deadline_ns", "latency_ns", "compute_ns", "slack_ns", "missed")]
-    return summarize(TimingSnapshot(*cat, first_index=0))
+    def cat(field: str) -> Any:
+        return np.concatenate([getattr(s, field) for s in snaps])
+
+    return summarize(TimingSnapshot(cat("deadline_ns"), cat("latency_ns"), cat("compute_ns"),
+                                    cat("slack_ns"), cat("missed"), first_index=0))
 
 
 def run_phase(cfg: Config, body_for: BodyFactory, seconds: float, telemetry: bool,
@@ -100,14 +102,15 @@ def compare(cfg: Config, body_for: BodyFactory, seconds: float = 10.0, phases: i
     finally:
         if tmp is not None:
             tmp.cleanup()
-    off, on = _pool(done, False), _pool(done, True)
-    growth = (on.compute_p99_us - off.compute_p99_us) / off.compute_p99_us if off.cycles else 0.0
+    s_off, s_on = _pool(done, False), _pool(done, True)
+    growth = ((s_on.compute_p99_us - s_off.compute_p99_us) / s_off.compute_p99_us
+              if s_off.cycles else 0.0)
     return {
-        "off": off.as_dict(),
-        "on": on.as_dict(),
+        "off": s_off.as_dict(),
+        "on": s_on.as_dict(),
         "compute_p99_growth": round(growth, 4),
-        "misses_off": off.missed,
-        "misses_on": on.missed,
+        "misses_off": s_off.missed,
+        "misses_on": s_on.missed,
         "published": sum(p.published for p in done),
         "dropped": sum(p.dropped for p in done),
         "flush_max_us": max(p.flush_max_us for p in done),

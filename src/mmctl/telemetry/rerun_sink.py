@@ -262,7 +262,8 @@ class RerunSink:
     def _set_time(self, cycle: int, t: float) -> None:
         rec = self._rec
         rec.set_time(layout.TIMELINE_CYCLE, sequence=int(cycle))
-        rec.set_time(layout.TIMELINE_TIME, duration=np.timedelta64(int(time_ns([t])[0]), "ns"))
+        t_ns = int(time_ns(np.array([t]))[0])
+        rec.set_time(layout.TIMELINE_TIME, duration=np.timedelta64(t_ns, "ns"))
 
     def _log_static(self) -> None:
         rr, rec = self._rr, self._rec

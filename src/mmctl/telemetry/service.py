@@ -78,7 +78,7 @@ class TelemetryService:
         from mmctl.telemetry.scene import SceneBuilder
 
         cfg, t = self.cfg, self.cfg.telemetry
-        static = {"period_s": 1.0 / cfg.loop.rate_hz, "loop_rate_hz": cfg.loop.rate_hz,
+        static: dict[str, float | int | str] = {"period_s": 1.0 / cfg.loop.rate_hz, "loop_rate_hz": cfg.loop.rate_hz,
                   "plot_rate_hz": t.plot_rate, "scene_rate_hz": t.scene_rate,
                   "queue_size": t.queue_size, "config": cfg.name, "mmctl": __version__}
         sink = RerunSink(self.destinations, recording_name=cfg.name, static=static,
