@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from types import TracebackType
 from typing import TYPE_CHECKING
 
@@ -60,7 +61,7 @@ class SerialBase:
         self._last_rx = -math.inf
         self._state: sp.WheelState | None = None
         self._prev_pos: tuple[int, ...] | None = None
-        self._last_fault: tuple[int, int] = (0, 0)
+        self._last_fault: tuple[int, int] = (0, 0xFF)  # from the last FAULT frame
         self._enabled = False
         self._fault: SafetyFault | None = None
 
@@ -258,7 +259,7 @@ class SerialBase:
         self._prev_pos = s.position
         self._odo.update(d / sp.ANGLE_SCALE, np.array(s.velocity) / sp.SPEED_SCALE, now)
 
-    def _request(self, msg_type: sp.MsgType, done: object) -> bool:
+    def _request(self, msg_type: sp.MsgType, done: Callable[[sp.WheelState], bool]) -> bool:
         """Send ``msg_type`` up to _TRIES times, each time waiting ``timeout`` for a
         STATE frame for which ``done(state)`` is true."""
         for _ in range(_TRIES):
@@ -268,7 +269,7 @@ class SerialBase:
             while time.monotonic() < deadline:
                 self._poll()
                 s = self._state
-                if self._decoder.stats.frames > before and s is not None and done(s):  # type: ignore[operator]
+                if self._decoder.stats.frames > before and s is not None and done(s):
                     return True
                 time.sleep(0.001)
         return False
@@ -287,8 +288,10 @@ class SerialBase:
         ):
             bad = [WHEEL_NAMES[i] for i, w in enumerate(s.wheel_status)
                    if w & sp.Status.FAULT or not w & sp.Status.ENABLED]
+            _, wheel = self._last_fault
             fault = SafetyFault(FaultCause.DRIVE_FAULT, port=self.port, wheels=bad,
-                                fault_code=f"0x{s.fault_code:04X}")
+                                fault_code=f"0x{s.fault_code:04X}",
+                                fault_wheel=WHEEL_NAMES[wheel] if wheel < 4 else "bridge")
         if fault is not None:
             self._fault = fault
             log.error("base_fault", transport="serial", cause=fault.cause.value, **fault.details)
