@@ -22,6 +22,15 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("trial", "mmctl.commands.trial", "bracket a task execution: trial start|stop|status"),
     ("metrics", "mmctl.commands.metrics", "recompute trial metrics from a .rrd recording"),
     ("study", "mmctl.commands.study", "reproduce the paper's 27-user study in simulation"),
+    ("fake-ur", "mmctl.commands.fake_ur", "run a fake UR10e controller on a loopback address"),
+    ("run", "mmctl.commands.run", "run the control daemon (default: the simulated robot)"),
+    ("status", "mmctl.commands.status", "show the daemon's state, mode, fault and loop timing"),
+    ("enable", "mmctl.commands.enable", "arm the robot (refused while a fault is present)"),
+    ("disable", "mmctl.commands.disable", "disarm: stop the arm and the base"),
+    ("mode", "mmctl.commands.mode", "change the IDK strategy at run time"),
+    ("switch", "mmctl.commands.switch", "switch mode: toggle manipulation / locomotion"),
+    ("tare", "mmctl.commands.tare", "re-zero the force/torque sensor"),
+    ("stop", "mmctl.commands.stop", "shut the daemon down"),
 ]
 
 #: group -> (help, [(sub-command, module, one-line help)])
@@ -32,6 +41,7 @@ GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
     "probe": ("bring-up probes for one device", [
         ("sensor", "mmctl.commands.probe_sensor", "read the force/torque sensor, print the wrench"),
         ("base", "mmctl.commands.probe_base", "enable the base drives, report states, drive a twist"),
+        ("arm", "mmctl.commands.probe_arm", "connect to the UR10e, print its state, jog a joint"),
     ]),
 }
 

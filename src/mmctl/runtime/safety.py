@@ -89,8 +89,14 @@ class SafetyMonitor:
             return True
         return False
 
-    def enable(self) -> None:
-        """Operator re-arm; raises :class:`EnableRefused` while any condition is present."""
+    def enable(self, conditions: Conditions | None = None) -> None:
+        """Operator re-arm; raises :class:`EnableRefused` while any condition is present.
+
+        conditions: a fresh evaluation to use instead of the last cycle's (e.g. after
+        the caller reset a device's latched fault).
+        """
+        if conditions is not None:
+            self.active = {c: dict(d) for c, d in conditions.items()}
         if self.active:
             raise EnableRefused(list(self.active), self.active)
         if self.state is not SafetyState.ARMED:

@@ -1,0 +1,38 @@
+"""Run the control daemon (foreground; Ctrl-C or `mmctl stop` ends it).
+
+Without --config it uses $MMCTL_CONFIG, else ./config/sim.yaml, else the built-in
+defaults: the simulated robot (fake UR controller, CAN sensor, CANopen drives and a
+simulated person pushing the handle), armed automatically so it moves within seconds.
+With config/robot.yaml it drives the real robot and starts DISARMED: `mmctl enable`.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE", help="YAML config (default: config/sim.yaml)")
+    p.add_argument("--duration", type=float, metavar="S",
+                   help="stop after this many seconds (default: run until stopped)")
+    p.add_argument("--socket", metavar="PATH", help="control socket (overrides daemon.socket_path)")
+    p.add_argument("--sim-log", metavar="DIR",
+                   help="simulation: write the fakes' command logs to DIR on shutdown")
+    p.add_argument("--log-level", choices=("debug", "info", "warning", "error"),
+                   help="override daemon.log_level")
+    p.add_argument("--log-json", action="store_true", help="JSON log lines even on a TTY")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from mmctl.runtime.client import load
+    from mmctl.runtime.factory import create_daemon
+    from mmctl.runtime.ipc import resolve_socket_path
+    from mmctl.runtime.logging import setup_logging
+
+    cfg = load(args.config)
+    setup_logging(args.log_level or cfg.daemon.log_level, json=True if args.log_json else None)
+    socket_path = Path(args.socket) if args.socket else resolve_socket_path(cfg.daemon.socket_path)
+    daemon = create_daemon(cfg, socket_path, sim_log=Path(args.sim_log) if args.sim_log else None)
+    return daemon.run(duration=args.duration)

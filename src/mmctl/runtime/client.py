@@ -1,0 +1,67 @@
+"""What the client commands (`mmctl status`, `enable`, ...) share: finding the config
+and the control socket, and one request with a one-line error."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import Any
+
+from mmctl.config import Config, default_config, load_config
+from mmctl.runtime.ipc import request, resolve_socket_path
+
+#: Where the systemd service puts its socket (RuntimeDirectory=mmctl).
+SERVICE_SOCKET = Path("/run/mmctl/mmctl.sock")
+
+
+def default_config_path() -> Path | None:
+    """$MMCTL_CONFIG, else ./config/sim.yaml when it exists, else None (built-in defaults,
+    which are the simulated robot as well)."""
+    env = os.environ.get("MMCTL_CONFIG")
+    if env:
+        return Path(env)
+    local = Path("config") / "sim.yaml"
+    return local if local.is_file() else None
+
+
+def load(path: str | None) -> Config:
+    """The config named on the command line, or the default one."""
+    p = Path(path) if path else default_config_path()
+    return load_config(p) if p is not None else default_config()
+
+
+def add_client_arguments(p: argparse.ArgumentParser) -> None:
+    """--socket and --config, common to every command that talks to the daemon."""
+    p.add_argument("--socket", metavar="PATH", help="control socket (default: from the config)")
+    p.add_argument("--config", metavar="FILE", help="config file whose daemon.socket_path to use")
+    p.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                   help="how long to wait for the daemon's answer [s] (default 10)")
+
+
+def socket_for(args: argparse.Namespace) -> Path:
+    """--socket, else the config's socket, else the service's socket if only that exists."""
+    if getattr(args, "socket", None):
+        return Path(args.socket)
+    path = resolve_socket_path(load(getattr(args, "config", None)).daemon.socket_path)
+    if not path.exists() and not getattr(args, "config", None) and SERVICE_SOCKET.exists():
+        return SERVICE_SOCKET
+    return path
+
+
+def call(args: argparse.Namespace, cmd: str, **params: Any) -> Any:
+    """One request to the daemon; IpcError (one line) when there is none or it refuses."""
+    return request(socket_for(args), cmd, timeout=getattr(args, "timeout", 10.0), **params)
+
+
+def summary(st: dict[str, Any]) -> str:
+    """One line: state, mode, fault."""
+    mode = st.get("mode", "?")
+    if mode == "switch" and st.get("switch"):
+        mode = f"switch/{st['switch']}"
+    line = f"state={st.get('state')} mode={mode}"
+    if st.get("fault"):
+        line += f" fault={st['fault']}"
+    if st.get("conditions"):
+        line += f" conditions={','.join(st['conditions'])}"
+    return line

@@ -1,0 +1,478 @@
+"""The daemon: devices + control core + safety + loop + control socket + systemd notify.
+
+One cycle (:meth:`Daemon.cycle`, on the loop thread):
+
+1. take operator commands queued by the control socket (enable, disable, mode, ...);
+2. read the arm, the sensor and the base; every SPEC §5 condition found goes into this
+   cycle's condition set (a device raising :class:`SafetyFault` names its cause);
+3. when ARMED, run the pure control step (wrench processing, admittance, IDK, limits);
+   its fault (non-finite, singular) joins the set;
+4. feed the set to the :class:`~mmctl.runtime.safety.SafetyMonitor`: ARMED sends speedJ
+   and the base twist; a new fault sends speedStop and zero base velocity *in this
+   same cycle*, then disables the base;
+5. systemd watchdog ping, optional per-cycle sample hook (telemetry).
+
+The daemon always starts DISARMED.  Shutdown (SIGTERM/SIGINT, ``mmctl stop``, the
+duration elapsing, or any exception) always ends with the stop commands sent, then the
+devices closed.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from mmctl.config import Config
+from mmctl.errors import FaultCause, IpcError, MmctlError, SafetyFault, TransportError
+from mmctl.runtime.core import ControlCore, CycleResult
+from mmctl.runtime.devices import Devices
+from mmctl.runtime.ipc import ControlServer, Peer
+from mmctl.runtime.loop import CycleLoop, Tick
+from mmctl.runtime.notify import Notifier
+from mmctl.runtime.safety import SafetyMonitor, SafetyState
+from mmctl.runtime.timing import TimingRing
+
+log = structlog.get_logger("mmctl.daemon")
+
+#: The hook the telemetry publisher attaches: called on the loop thread once per cycle
+#: with a :class:`mmctl.telemetry.sample.TelemetrySample`; must not block.
+SampleHook = Callable[[Any], None]
+
+_BASE_CAUSES = frozenset({FaultCause.DRIVE_FAULT, FaultCause.DRIVE_HEARTBEAT,
+                          FaultCause.BASE_LINK})
+_LINK_CAUSE = {"arm": FaultCause.ARM_DISCONNECTED, "sensor": FaultCause.SENSOR_LINK,
+               "base": FaultCause.BASE_LINK}
+
+
+class Daemon:
+    """Composition root of the running daemon (see the module docstring).
+
+    cfg: the configuration; devices: not yet connected; core: the control chain;
+    socket_path: where to serve the control socket (None = no socket, for in-process
+    tests); notifier: systemd notify (default: from the environment); sim: the
+    simulated world when running without hardware (anything with ``status()``,
+    ``start_human()``, ``command(req)`` and ``close()``), or None.
+    """
+
+    def __init__(self, cfg: Config, devices: Devices, core: ControlCore, *,
+                 socket_path: Path | None = None, notifier: Notifier | None = None,
+                 sim: Any = None):
+        self.cfg = cfg
+        self.devices = devices
+        self.core = core
+        self.safety = SafetyMonitor()
+        self.notifier = notifier if notifier is not None else Notifier()
+        self.sim = sim
+        self.ring = TimingRing(cfg.loop.timing_samples)
+        self.loop = CycleLoop(
+            self.cycle, rate_hz=cfg.loop.rate_hz, spin_margin=cfg.loop.spin_margin,
+            max_consecutive_misses=cfg.loop.max_consecutive_misses,
+            max_total_misses=cfg.loop.max_total_misses, ring=self.ring,
+            rt_priority=cfg.loop.rt_priority, cpu_affinity=cfg.loop.cpu_affinity,
+        )
+        self.period = 1.0 / cfg.loop.rate_hz
+        self.server = (ControlServer(socket_path, self.handle, cfg.daemon.socket_mode)
+                       if socket_path is not None else None)
+        self._commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = (
+            queue.SimpleQueue())
+        self._stop_requested = threading.Event()
+        self._healthy_cycle = threading.Event()
+        self.stop_reason = ""
+        self.sample_hook: SampleHook | None = None
+        self.cycles = 0
+        self.last: CycleResult | None = None
+        self.last_conditions: dict[FaultCause, dict[str, Any]] = {}
+        self._button_was = False
+        self._base_enabled = False
+        self._started = time.monotonic()
+        self._t0_ns = 0
+        self._status_text = ""
+        self.commands_sent = {"speed_j": 0, "stop": 0, "twist": 0}
+
+    # ------------------------------------------------------------------ lifecycle --
+    def open(self) -> None:
+        """Claim the control socket, connect the devices (in that order)."""
+        if self.server is not None:
+            self.server.open()
+        try:
+            if self.sim is not None:
+                self.sim.start()
+            self.devices.connect()
+        except BaseException:
+            if self.server is not None:
+                self.server.close()
+            if self.sim is not None:
+                self.sim.close()
+            raise
+        self.notifier.connect()
+
+    def start(self) -> None:
+        """Start the loop and the control socket."""
+        sys.setswitchinterval(self.cfg.loop.switch_interval)
+        self._t0_ns = time.perf_counter_ns()
+        self.loop.start()
+        if self.server is not None:
+            self.server.start()
+
+    def run(self, duration: float | None = None, install_signals: bool = True) -> int:
+        """open, start, wait for a stop (signal, ``mmctl stop``, duration), shut down.
+
+        Returns the process exit status (0 clean, 1 if the loop died of an error).
+        """
+        if install_signals:
+            self._install_signals()
+        try:
+            self.open()
+            self.start()
+            self._wait_ready()
+            if self.cfg.sim.enabled and self.cfg.sim.auto_enable and self.sim is not None:
+                self._auto_enable()
+            deadline = None if duration is None else time.monotonic() + duration
+            while not self._stop_requested.is_set():
+                if not self.loop.running:
+                    self.stop_reason = self.stop_reason or "loop_ended"
+                    break
+                left = 0.25 if deadline is None else min(0.25, deadline - time.monotonic())
+                if left <= 0:
+                    self.stop_reason = "duration"
+                    break
+                self._stop_requested.wait(left)
+        finally:
+            self.shutdown()
+        return 1 if self.loop.error is not None else 0
+
+    def request_stop(self, reason: str = "requested") -> None:
+        """Ask :meth:`run` to shut down (any thread, signal handler)."""
+        self.stop_reason = self.stop_reason or reason
+        self._stop_requested.set()
+
+    def shutdown(self) -> None:
+        """Stop the loop, send the stop commands, close devices, socket and sim (idempotent)."""
+        self.notifier.stopping(f"stopping ({self.stop_reason or 'shutdown'})")
+        log.info("daemon_stopping", reason=self.stop_reason or "shutdown")
+        self.loop.stop()
+        self.loop.wait(5.0)
+        if self.devices.connected:
+            self.devices.stop(self.cfg.arm.stop_deceleration)
+            self.commands_sent["stop"] += 1
+            if self.safety.state is SafetyState.ARMED:
+                self.safety.disable()
+        if self.server is not None:
+            self.server.close()
+        self.devices.close()
+        if self.sim is not None:
+            self.sim.close()
+        self.notifier.close()
+        log.info("daemon_stopped", cycles=self.cycles, error=repr(self.loop.error)
+                 if self.loop.error else None)
+
+    def _install_signals(self) -> None:
+        def on_signal(signum: int, _frame: Any) -> None:
+            self.request_stop(signal.Signals(signum).name)
+
+        signal.signal(signal.SIGTERM, on_signal)
+        signal.signal(signal.SIGINT, on_signal)
+
+    def _wait_ready(self) -> None:
+        healthy = self._healthy_cycle.wait(self.cfg.daemon.ready_timeout)
+        if not healthy:
+            log.warning("ready_without_healthy_cycle",
+                        conditions=sorted(c.value for c in self.last_conditions))
+        self.notifier.ready(self._status())
+        log.info("daemon_ready", state=self.safety.state.value, mode=self.core.mode,
+                 socket=str(self.server.path) if self.server else None)
+
+    def _auto_enable(self) -> None:
+        """Simulation only: tare, arm, and let the simulated person start."""
+        try:
+            self.call("tare")
+            deadline = time.monotonic() + self.cfg.daemon.ready_timeout
+            while self.core.taring and time.monotonic() < deadline and self.loop.running:
+                time.sleep(0.01)
+            self.call("enable")
+        except MmctlError as exc:
+            log.warning("auto_enable_failed", error=str(exc))
+            return
+        log.info("auto_enabled", mode=self.core.mode)
+        self.sim.start_human()
+
+    # ---------------------------------------------------------- operator commands --
+    def submit(self, fn: Callable[[], Any]) -> Future[Any]:
+        """Run ``fn`` on the loop thread at the start of the next cycle."""
+        fut: Future[Any] = Future()
+        self._commands.put((fn, fut))
+        return fut
+
+    def call(self, cmd: str, **args: Any) -> Any:
+        """Run one control command (same names as the socket's) and wait for its result."""
+        return self.handle({"cmd": cmd, **args}, None)
+
+    def _on_loop(self, fn: Callable[[], Any]) -> Any:
+        """Run ``fn`` on the loop thread and wait; without a loop thread (tests stepping
+        the daemon with :meth:`step_once`) run it right here."""
+        if not self.loop.running:
+            if self.loop.error is not None or self._stop_requested.is_set():
+                raise IpcError("the control loop is not running")
+            return fn()
+        try:
+            return self.submit(fn).result(self.cfg.daemon.command_timeout)
+        except FutureTimeout:
+            raise IpcError("the control loop did not take the command in time") from None
+
+    def handle(self, req: Mapping[str, Any], peer: Peer | None) -> Any:
+        """Dispatch one control-socket request (see :mod:`mmctl.runtime.ipc`)."""
+        cmd = req["cmd"]
+        if cmd == "status":
+            return self.status()
+        if cmd == "enable":
+            return self._on_loop(self._enable)
+        if cmd == "disable":
+            return self._on_loop(self._disable)
+        if cmd == "mode":
+            mode = _arg(req, "mode", str)
+            return self._on_loop(lambda: self._set_mode(mode))
+        if cmd == "switch":
+            which = _arg(req, "to", str)
+            return self._on_loop(lambda: self._set_switch(which))
+        if cmd == "tare":
+            return self._on_loop(self._tare)
+        if cmd == "stop":
+            self.request_stop("mmctl stop")
+            return {"stopping": True}
+        if cmd == "sim":
+            if self.sim is None:
+                raise MmctlError("'sim' commands need the simulated robot (sim.enabled)")
+            return self.sim.command(req)
+        raise MmctlError(f"unknown command {cmd!r}; known: status, enable, disable, mode, "
+                         "switch, tare, stop, sim")
+
+    def _enable(self) -> dict[str, Any]:
+        """Operator re-arm (loop thread).
+
+        Conditions other than the base's must be gone (else EnableRefused).  The base
+        latches its faults until ``enable()`` resets them, so it is enabled first and
+        its health re-checked: a drive still faulty or silent refuses the enable.
+        """
+        if self.safety.armed:
+            return self.status()
+        if self.cycles == 0:
+            raise MmctlError("refused to enable: no control cycle has run yet")
+        other = {c: d for c, d in self.safety.active.items() if c not in _BASE_CAUSES}
+        if self.loop.consecutive_misses == 0:
+            other.pop(FaultCause.LOOP_OVERRUN, None)  # on time again; counters reset below
+        if other:
+            self.safety.enable(other)  # raises EnableRefused naming them
+        try:
+            self.devices.base.enable()
+            self.devices.base.check()
+        except SafetyFault as exc:
+            self.devices.stop(self.cfg.arm.stop_deceleration)
+            self.safety.enable({exc.cause: {"device": "base", **exc.details}})  # refused
+        except (MmctlError, OSError) as exc:
+            self.devices.stop(self.cfg.arm.stop_deceleration)
+            raise MmctlError(f"refused to enable: the base did not enable ({exc})") from None
+        self.safety.enable({})
+        self._base_enabled = True
+        self.core.reset()
+        self.loop.reset_misses()
+        self._update_status()
+        return self.status()
+
+    def _disable(self) -> dict[str, Any]:
+        if self.safety.disable():
+            self._send_stop()
+        return self.status()
+
+    def _set_mode(self, mode: str) -> dict[str, Any]:
+        old = self.core.mode
+        self.core.set_mode(mode)
+        log.info("mode", old=old, new=self.core.mode)
+        self._update_status()
+        return self.status()
+
+    def _set_switch(self, which: str) -> dict[str, Any]:
+        if self.core.mode != "switch":
+            raise MmctlError(f"`switch` needs mode 'switch' (current mode: {self.core.mode}); "
+                             "run `mmctl mode switch` first")
+        old = self.core.switch
+        self.core.set_switch(which)
+        log.info("switch", old=old, new=self.core.switch)
+        self._update_status()
+        return self.status()
+
+    def _tare(self) -> dict[str, Any]:
+        if self.safety.armed:
+            raise MmctlError("refusing to tare while armed: `mmctl disable` first "
+                             "(a tare must not absorb the operator's push)")
+        self.core.start_tare()
+        return {"taring": True, "samples": self.cfg.sensor.wrench.tare_samples}
+
+    # ------------------------------------------------------------------ the cycle --
+    def step_once(self, overrun: bool = False) -> None:
+        """Run one cycle on the calling thread (tests and tools that drive the daemon
+        without the loop thread); ``overrun`` pretends the miss budget is exhausted."""
+        now = time.perf_counter_ns()
+        self.cycle(Tick(self.cycles, now, now, self.loop.period_ns, 0, 0, overrun))
+
+    def cycle(self, tick: Tick) -> None:
+        """One control period (loop thread)."""
+        try:
+            self._drain_commands()
+            self._cycle(tick)
+        except Exception as exc:
+            cause = FaultCause.INTERNAL
+            if self.safety.trip(cause, error=repr(exc)):
+                self._send_stop()
+            log.exception("cycle_failed", error=repr(exc))
+        self.cycles += 1
+        if self.notifier.watchdog_interval is not None:
+            self.notifier.watchdog_tick(tick.wake_ns)
+
+    def _drain_commands(self) -> None:
+        while True:
+            try:
+                fn, fut = self._commands.get_nowait()
+            except queue.Empty:
+                return
+            if not fut.set_running_or_notify_cancel():
+                continue
+            try:
+                fut.set_result(fn())
+            except Exception as exc:  # noqa: BLE001 -- handed to the waiting client
+                fut.set_exception(exc)
+
+    def _read(self, name: str, fn: Callable[[], Any],
+              conditions: dict[FaultCause, dict[str, Any]]) -> Any:
+        try:
+            return fn()
+        except SafetyFault as exc:
+            conditions.setdefault(exc.cause, {"device": name, **exc.details})
+        except TransportError as exc:
+            conditions.setdefault(_LINK_CAUSE[name], {"device": name, "error": str(exc)})
+        return None
+
+    def _cycle(self, tick: Tick) -> None:
+        conditions: dict[FaultCause, dict[str, Any]] = {}
+        dev = self.devices
+        arm = self._read("arm", dev.arm.read_state, conditions)
+        wrench = self._read("sensor", dev.sensor.read, conditions)
+        odom = self._read("base", dev.base.read_odometry, conditions)
+        if tick.overrun:
+            conditions[FaultCause.LOOP_OVERRUN] = {
+                "consecutive": tick.consecutive_misses, "total": tick.total_misses}
+        self._poll_button()
+        result: CycleResult | None = None
+        if arm is not None and wrench is not None and odom is not None:
+            result = self.core.step(arm, wrench, odom, tick.period, active=self.safety.armed)
+            if result.fault is not None:
+                conditions.setdefault(result.fault, dict(result.fault_details))
+            self.last = result
+        stop_now = self.safety.update(conditions)
+        self.last_conditions = conditions
+        if stop_now:
+            self._send_stop()
+        elif self.safety.armed and result is not None:
+            self._send_motion(result)
+        if not conditions and dev.connected:
+            self._healthy_cycle.set()
+        if self.sample_hook is not None and result is not None:
+            self.sample_hook(self.core.sample(result, tick.index,
+                                              (tick.deadline_ns - self._t0_ns) * 1e-9,
+                                              self.safety.state.value))
+        if stop_now:
+            self._update_status()
+
+    def _send_motion(self, r: CycleResult) -> None:
+        dev = self.devices
+        try:
+            dev.arm.speed_j(r.qd_arm, self.cfg.arm.speedj_acceleration, self.period)
+            self.commands_sent["speed_j"] += 1
+        except (SafetyFault, TransportError) as exc:
+            cause = getattr(exc, "cause", FaultCause.ARM_DISCONNECTED)
+            if self.safety.trip(cause, device="arm", error=str(exc)):
+                self._send_stop()
+            return
+        try:
+            dev.base.send_twist(float(r.twist[0]), float(r.twist[1]), float(r.twist[2]))
+            self.commands_sent["twist"] += 1
+        except (SafetyFault, TransportError) as exc:
+            cause = getattr(exc, "cause", FaultCause.BASE_LINK)
+            if self.safety.trip(cause, device="base", error=str(exc)):
+                self._send_stop()
+
+    def _send_stop(self) -> None:
+        self.devices.stop(self.cfg.arm.stop_deceleration, disable_base=True)
+        self._base_enabled = False
+        self.commands_sent["stop"] += 1
+
+    def _poll_button(self) -> None:
+        button = self.devices.button
+        if button is None:
+            return
+        try:
+            now = button.pressed()
+        except (MmctlError, OSError):
+            return
+        if now and not self._button_was and self.core.mode == "switch":
+            self.core.toggle_switch()
+            log.info("switch", new=self.core.switch, source="button")
+        self._button_was = now
+
+    # -------------------------------------------------------------------- status --
+    def _status(self) -> str:
+        s = self.safety
+        fault = f" fault={s.latched.value}" if s.latched else ""
+        return f"state={s.state.value} mode={self.core.mode}{fault}"
+
+    def _update_status(self) -> None:
+        text = self._status()
+        if text != self._status_text:
+            self._status_text = text
+            self.notifier.status(text)
+
+    def status(self) -> dict[str, Any]:
+        """Plain-JSON snapshot for ``mmctl status`` (any thread)."""
+        stats = self.ring.stats(min(self.ring.size, int(self.cfg.loop.rate_hz * 5)))
+        out: dict[str, Any] = {
+            **self.safety.as_dict(),
+            "mode": self.core.mode,
+            "switch": self.core.switch,
+            "cycles": self.cycles,
+            "uptime_s": round(time.monotonic() - self._started, 3),
+            "loop": {"rate_hz": self.cfg.loop.rate_hz, "running": self.loop.running,
+                     "total_misses": self.loop.total_misses, **stats.as_dict()},
+            "commands": dict(self.commands_sent),
+            "config": self.cfg.name,
+        }
+        last = self.last
+        if last is not None:
+            out["robot"] = {"q": _round(last.q), "ee_position": _round(last.p),
+                            "v_d": _round(last.v_d), "f_h": _round(last.f_h),
+                            "energy_J": round(float(last.energy.total), 6)}
+        if self.sim is not None:
+            out["sim"] = self.sim.status()
+        return out
+
+
+def _round(v: Any, nd: int = 5) -> list[float]:
+    return [round(float(x), nd) if math.isfinite(float(x)) else float("nan")
+            for x in np.asarray(v).ravel()]
+
+
+def _arg(req: Mapping[str, Any], key: str, typ: type) -> Any:
+    val = req.get(key)
+    if not isinstance(val, typ):
+        raise MmctlError(f"request {req.get('cmd')!r} needs {key!r} ({typ.__name__})")
+    return val

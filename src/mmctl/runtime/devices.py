@@ -1,0 +1,117 @@
+"""The robot's devices as the daemon sees them: open, stop, close — in that order.
+
+:func:`open_devices` builds the real transports from the configuration (the same
+client code talks to the hardware and to the simulated robot's fakes); transport
+modules are imported here, lazily, so that the control commands of the CLI never load
+ur_rtde, python-can or canopen.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol
+
+import structlog
+
+from mmctl.config import Config
+from mmctl.errors import MmctlError
+
+if TYPE_CHECKING:
+    from mmctl.transports.arm import Arm
+    from mmctl.transports.base import Base
+    from mmctl.transports.sensor import ForceSensor
+
+log = structlog.get_logger("mmctl.devices")
+
+
+class Button(Protocol):
+    """A digital input: the handle button that toggles switch mode."""
+
+    def pressed(self) -> bool: ...
+
+
+class InjectedButton:
+    """A button whose state someone sets (the simulated person, a test, ``mmctl`` sim)."""
+
+    def __init__(self) -> None:
+        self.state = False
+
+    def pressed(self) -> bool:
+        return self.state
+
+
+class ArmDigitalInput:
+    """A UR digital input read through the arm transport's ``digital_input(index)``."""
+
+    def __init__(self, arm: Any, index: int):
+        self._arm = arm
+        self.index = index
+
+    def pressed(self) -> bool:
+        return bool(self._arm.digital_input(self.index))
+
+
+@dataclass
+class Devices:
+    """Arm, sensor, base (and an optional handle button), connected and closed together."""
+
+    arm: Arm
+    sensor: ForceSensor
+    base: Base
+    button: Button | None = None
+    connected: list[str] = field(default_factory=list)
+
+    def connect(self) -> None:
+        """Connect arm, sensor, base; on failure close what was opened and re-raise."""
+        try:
+            for name in ("arm", "sensor", "base"):
+                getattr(self, name).connect()
+                self.connected.append(name)
+                log.info("device_connected", device=name)
+        except BaseException:
+            self.close()
+            raise
+
+    def stop(self, arm_deceleration: float, disable_base: bool = True) -> list[str]:
+        """speedStop the arm and zero the base (then disable it); every step is tried.
+
+        Returns the names of the steps that failed (each logged); never raises.
+        """
+        failed: list[str] = []
+        steps: list[tuple[str, Callable[[], None]]] = [
+            ("arm.stop", lambda: self.arm.stop(arm_deceleration)),
+            ("base.stop", self.base.stop),
+        ]
+        if disable_base:
+            steps.append(("base.disable", self.base.disable))
+        for name, fn in steps:
+            try:
+                fn()
+            except (MmctlError, OSError, RuntimeError) as exc:
+                failed.append(name)
+                log.error("stop_command_failed", step=name, error=str(exc),
+                          cause=getattr(exc, "cause", None))
+        return failed
+
+    def close(self) -> None:
+        """Close every device (idempotent, errors logged)."""
+        for name in ("base", "sensor", "arm"):
+            try:
+                getattr(self, name).close()
+            except (MmctlError, OSError, RuntimeError) as exc:
+                log.error("device_close_failed", device=name, error=str(exc))
+        self.connected.clear()
+
+
+def open_devices(cfg: Config, button: Button | None = None) -> Devices:
+    """The real transports for ``cfg`` (not yet connected)."""
+    from mmctl.transports.base import open_base
+    from mmctl.transports.sensor import open_sensor
+    from mmctl.transports.ur_rtde_arm import UrRtdeArm
+
+    arm = UrRtdeArm(cfg.arm)
+    if button is None and cfg.daemon.switch_input >= 0:
+        button = ArmDigitalInput(arm, cfg.daemon.switch_input)
+    return Devices(arm=arm, sensor=open_sensor(cfg.sensor), base=open_base(cfg),
+                   button=button)

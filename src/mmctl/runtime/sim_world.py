@@ -1,0 +1,345 @@
+"""The simulated robot `mmctl run` drives when no hardware is configured.
+
+:class:`SimWorld` starts the fakes that speak the real wire protocols — the fake UR
+controller (its own process, on ``arm.host``), the fake ATI sensor on the virtual CAN
+channel ``sensor.can.channel`` (or the RDT server), the four fake CiA 402 drives on
+``base.canopen.channel`` — and a thread playing a person at the handle.  The daemon
+then connects to them through its real transports, exactly as to the hardware.
+
+The person (:class:`~mmctl.sim.human.SimulatedHuman`, a peg-in-hole task repeated
+forever) observes the handle's true pose: the fake UR's joints, the fake drives' base
+pose and the model's FK.  The hand force it applies is turned into what the sensor
+measures: rotated into the sensor frame, its torque about the sensor origin, plus the
+handle's weight (so gravity compensation has something to do) and a constant sensor
+bias (so the tare has something to do).  The human's switch requests press the
+simulated handle button.
+
+``command({"cmd": "sim", ...})`` (socket: ``mmctl`` tests, demos) can override the
+person with a constant push and inject faults into the fakes; see :data:`FAULTS`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from mmctl.config import Config
+from mmctl.errors import ConfigError, MmctlError
+from mmctl.runtime.devices import InjectedButton
+from mmctl.types import Vec
+
+log = structlog.get_logger("mmctl.sim")
+
+G0 = 9.80665
+#: A constant offset the simulated sensor adds (what a tare removes) [N, N m].
+SENSOR_BIAS = np.array([1.2, -0.7, 2.5, 0.04, -0.03, 0.02])
+#: Injectable faults: name -> what it does to the fakes.
+FAULTS = {
+    "sensor_silent": "the CAN sensor stops answering",
+    "sensor_status": "the sensor's status word reports a bus error",
+    "sensor_saturation": "the sensor reports gauge saturation",
+    "wrench_over_limit": "the person pushes with 300 N",
+    "arm_protective_stop": "the UR goes into protective stop",
+    "arm_emergency_stop": "the UR's emergency stop is pressed",
+    "arm_not_playing": "the UR program is stopped (pendant stop)",
+    "arm_frozen": "the UR stops streaming RTDE data (timestamp frozen)",
+    "arm_disconnected": "the UR controller process dies",
+    "drive_fault": "drive 1 (FL) enters FAULT",
+    "drive_silent": "drive 1 (FL) stops its heartbeat",
+}
+_HUMAN_PERIOD = 0.01  # [s] the person's update period (100 Hz: slow next to a hand)
+
+
+class SimWorld:
+    """The fakes and the simulated person (see the module docstring).
+
+    cfg: the daemon's configuration (addresses, channels, geometry); log_dir: where
+    :meth:`close` writes the fakes' command logs (``ur_commands.jsonl``,
+    ``drive_commands.jsonl``), or None.
+    """
+
+    def __init__(self, cfg: Config, log_dir: Path | None = None):
+        if cfg.sensor.transport == "can" and cfg.sensor.can.interface != "virtual":
+            raise ConfigError("sensor.can.interface", cfg.sensor.can.interface,
+                              "the simulated robot needs 'virtual' (sim.enabled is true)")
+        if cfg.base.transport != "canopen" or cfg.base.canopen.interface != "virtual":
+            raise ConfigError("base.canopen.interface", cfg.base.canopen.interface,
+                              "the simulated robot needs base.transport 'canopen' on the "
+                              "'virtual' interface (sim.enabled is true)")
+        self.cfg = cfg
+        self.log_dir = log_dir
+        self.button = InjectedButton()
+        q0 = cfg.robot.q_init[:6] if cfg.robot.q_init is not None else cfg.robot.q_des
+        self.q_init = np.asarray(q0, dtype=float)
+        self.ur: Any = None
+        self.drives: Any = None
+        self.sensor: Any = None
+        self.error: BaseException | None = None
+        self.human_on = False
+        self.push: Vec | None = None
+        self._push_until = math.inf
+        self._faults: set[str] = set()
+        self._wrench = np.zeros(6)
+        self._last_force = np.zeros(3)
+        self._handle = np.zeros(3)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._human: Any = None
+        self._request_was: str | None = None
+        self._press_until = 0.0
+        self.updates = 0
+
+    # -- lifecycle ----------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the fakes and the person's thread (the person is idle until
+        :meth:`start_human`; the sensor already measures the handle's weight)."""
+        from mmctl.model.robot import RobotModel
+        from mmctl.sim.fake_drives import FakeDrives
+        from mmctl.sim.fake_ur import FakeURController
+
+        cfg = self.cfg
+        self.model = RobotModel(cfg.robot)
+        self._lever = np.subtract(cfg.robot.tool_offset, cfg.robot.sensor_offset)
+        w = cfg.sensor.wrench
+        self._mass, self._com = w.handle_mass, np.asarray(w.handle_com, dtype=float)
+        self.ur = FakeURController(cfg.arm.host, q_init=self.q_init).start()
+        self.drives = FakeDrives(cfg).start()
+        self._update()  # the first wrench before the sensor answers anything
+        if cfg.sensor.transport == "can":
+            from mmctl.sim.fake_ft_can import FakeFtCanSensor
+
+            self.sensor = FakeFtCanSensor(self, channel=cfg.sensor.can.channel,
+                                          base_id=cfg.sensor.can.base_id).start()
+        else:
+            from mmctl.sim.fake_rdt import FakeRdtServer
+
+            r = cfg.sensor.rdt
+            self.sensor = FakeRdtServer(self, host=r.host, port=r.port,
+                                        counts_per_force=r.counts_per_force,
+                                        counts_per_torque=r.counts_per_torque).start()
+        self._thread = threading.Thread(target=self._run, name="mmctl-sim-human", daemon=True)
+        self._thread.start()
+        log.info("sim_started", arm_host=cfg.arm.host, sensor=cfg.sensor.transport,
+                 base_channel=cfg.base.canopen.channel, human=cfg.sim.human)
+
+    def start_human(self) -> None:
+        """Let the simulated person start the task (if ``sim.human``)."""
+        if self.cfg.sim.human:
+            self.human_on = True
+
+    def close(self) -> None:
+        """Stop the person and the fakes; write the command logs (idempotent)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+            self._thread = None
+        if self.log_dir is not None and self.ur is not None:
+            self._write_logs(self.log_dir)
+        for name in ("sensor", "drives", "ur"):
+            fake = getattr(self, name)
+            if fake is None:
+                continue
+            try:
+                fake.stop()
+            except Exception as exc:  # noqa: BLE001 -- report, keep closing the others
+                log.error("sim_fake_stop_failed", fake=name, error=repr(exc))
+            setattr(self, name, None)
+
+    # -- what the fake sensor measures (WrenchSource) -------------------------------------
+    def wrench(self, t: float) -> Vec:
+        """The sensor-frame wrench (6,) [N, N m] right now (``t`` unused: the person's
+        thread keeps it current)."""
+        return self._wrench.copy()
+
+    # -- the person's thread ------------------------------------------------------------
+    def _run(self) -> None:
+        try:
+            next_t = time.monotonic()
+            while not self._stop.is_set():
+                self._update()
+                next_t += _HUMAN_PERIOD
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    self._stop.wait(delay)
+                else:
+                    next_t = time.monotonic()
+        except Exception as exc:
+            self.error = exc
+            log.exception("sim_human_failed", error=repr(exc))
+
+    def _observe(self) -> tuple[Vec, Vec, Vec, Vec]:
+        """True q (9,), qd (9,), handle position and velocity in the world [m, m/s]."""
+        from mmctl.control.mecanum import odometry_matrix
+
+        arm = self.ur.state()
+        x, y, yaw = self.drives.pose()
+        twist = odometry_matrix(self.cfg.base.mecanum) @ self.drives.wheel_velocities()
+        q = np.concatenate((arm.q, [x, y, yaw]))
+        qd = np.concatenate((arm.qd, twist))
+        kin = self.model.update(q, inertia=False)
+        c, s = math.cos(yaw), math.sin(yaw)
+        v_b = kin.J[:3] @ qd
+        v_w = np.array([c * v_b[0] - s * v_b[1], s * v_b[0] + c * v_b[1], v_b[2]])
+        return q, qd, kin.p, v_w
+
+    def _human_force(self, t: float, q: Vec, p: Vec, v: Vec) -> Vec:
+        from mmctl.sim.human import HandleObservation
+
+        if self._human is None:
+            self._human = self._make_human(q)
+        act = self._human.update(HandleObservation(t, p, v, q[6:9]))
+        if act.switch_request is not None and act.switch_request != self._request_was:
+            self._request_was = act.switch_request
+            self._press_until = t + 0.1  # a 100 ms press of the handle button
+        return np.asarray(act.force, dtype=float)
+
+    def _make_human(self, q: Vec) -> Any:
+        from mmctl.sim.human import STUDY_HOLES, SimulatedHuman, peg_in_hole_task
+        from mmctl.study.users import draw_user
+
+        kin = self.model.update(q, inertia=False)
+        c, s = math.cos(q[8]), math.sin(q[8])
+        rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        mount = self.cfg.robot.arm_mount
+        task = peg_in_hole_task(kin.p, rz @ kin.R_base[:, 2], float(q[8]), STUDY_HOLES,
+                                arm_mount_xy=(float(mount[0]), float(mount[1])))
+        return SimulatedHuman(draw_user(self.cfg.sim.human_seed, 0), task, loop=True)
+
+    def _update(self) -> None:
+        t = time.monotonic()
+        q, _qd, p, v = self._observe()
+        force = np.zeros(3)
+        with self._lock:
+            push = self.push if t < self._push_until else None
+            faults = set(self._faults)
+        if push is not None:
+            force = push.copy()
+        elif self.human_on:
+            force = self._human_force(t, q, p, v)
+        if "wrench_over_limit" in faults:
+            force = np.array([300.0, 0.0, 0.0])
+        self.button.state = t < self._press_until
+        self._wrench = self._sensor_wrench(q, force)
+        self._last_force = force
+        self._handle = p
+        self.updates += 1
+
+    def _sensor_wrench(self, q: Vec, force_world: Vec) -> Vec:
+        """World force at the handle -> what the sensor measures (sensor frame)."""
+        yaw = q[8]
+        c, s = math.cos(yaw), math.sin(yaw)
+        f_b = np.array([c * force_world[0] + s * force_world[1],
+                        -s * force_world[0] + c * force_world[1], force_world[2]])
+        r_bs = self.model.fk_base(q, "sensor").rotation
+        f_s = r_bs.T @ f_b
+        t_s = np.cross(self._lever, f_s)
+        g_s = r_bs.T @ np.array([0.0, 0.0, -self._mass * G0])
+        out = np.concatenate((f_s + g_s, t_s + np.cross(self._com, g_s)))
+        return out + SENSOR_BIAS
+
+    # -- control-socket commands ----------------------------------------------------------
+    def command(self, req: dict[str, Any]) -> dict[str, Any]:
+        """``{"cmd": "sim", ...}``: ``push`` [fx, fy, fz] (world frame [N]) with optional
+        ``duration`` [s] (``push: null`` ends it); ``human`` true/false; ``press``: the
+        handle button; ``fault``: a name of :data:`FAULTS` with ``on`` true/false."""
+        if "push" in req:
+            self.set_push(req["push"], req.get("duration"))
+        if "human" in req:
+            self.human_on = bool(req["human"]) and self.cfg.sim.human
+        if req.get("press"):
+            self._press_until = time.monotonic() + 0.1
+        if "fault" in req:
+            self.inject(str(req["fault"]), bool(req.get("on", True)))
+        return self.status()
+
+    def set_push(self, force: Any, duration: float | None = None) -> None:
+        """A constant world-frame push [N] instead of the person (None ends it)."""
+        with self._lock:
+            if force is None:
+                self.push = None
+                return
+            f = np.asarray(force, dtype=float).reshape(-1)
+            if f.shape != (3,) or not np.all(np.isfinite(f)):
+                raise MmctlError(f"push must be 3 finite numbers [N], got {force!r}")
+            self.push = f
+            self._push_until = math.inf if duration is None else time.monotonic() + float(duration)
+
+    def inject(self, fault: str, on: bool = True) -> None:
+        """Switch one of :data:`FAULTS` on or off in the fakes."""
+        if fault not in FAULTS:
+            raise MmctlError(f"unknown sim fault {fault!r}; known: {', '.join(FAULTS)}")
+        from mmctl.sim.fake_ft_can import STATUS_BUS_ERROR, STATUS_SATURATION
+
+        nid = self.cfg.base.canopen.node_ids[0]
+        if fault == "sensor_silent":
+            self.sensor.silent = on
+        elif fault == "sensor_status":
+            self.sensor.status = STATUS_BUS_ERROR if on else 0
+        elif fault == "sensor_saturation":
+            self.sensor.status = STATUS_SATURATION if on else 0
+        elif fault == "arm_protective_stop":
+            self.ur.set_protective_stop(on)
+        elif fault == "arm_emergency_stop":
+            self.ur.set_emergency_stop(on)
+        elif fault == "arm_not_playing":
+            if on:
+                self.ur.stop_program()
+        elif fault == "arm_frozen":
+            self.ur.freeze_stream(on)
+        elif fault == "arm_disconnected":
+            if on:
+                self.ur.kill()
+            else:
+                self.ur.restart()
+        elif fault == "drive_fault":
+            if on:
+                self.drives.inject_fault(nid)
+        elif fault == "drive_silent":
+            if on:
+                self.drives.inject_silence(nid)
+            else:
+                self.drives.resume(nid)
+        with self._lock:
+            if on:
+                self._faults.add(fault)
+            else:
+                self._faults.discard(fault)
+        log.info("sim_fault", fault=fault, on=on)
+
+    def status(self) -> dict[str, Any]:
+        """For ``mmctl status``: the person, the push, the injected faults, truth."""
+        return {
+            "human": self.human_on,
+            "push": None if self.push is None else self.push.tolist(),
+            "faults": sorted(self._faults),
+            "handle_world": [round(float(x), 5) for x in self._handle],
+            "hand_force": [round(float(x), 3) for x in self._last_force],
+            "button": self.button.state,
+            "ur_pid": None if self.ur is None else self.ur.pid,
+            "updates": self.updates,
+            "error": None if self.error is None else repr(self.error),
+        }
+
+    def _write_logs(self, d: Path) -> None:
+        d.mkdir(parents=True, exist_ok=True)
+        try:
+            entries = self.ur.commands()
+        except MmctlError as exc:
+            log.warning("sim_ur_log_unavailable", error=str(exc))
+            entries = []
+        with (d / "ur_commands.jsonl").open("w") as f:
+            for e in entries:
+                row = {k: (v.value if hasattr(v, "value") else v) for k, v in e._asdict().items()}
+                f.write(json.dumps(row) + "\n")
+        with (d / "drive_commands.jsonl").open("w") as f:
+            for nid in self.cfg.base.canopen.node_ids:
+                for t, counts in self.drives.command_log(nid):
+                    f.write(json.dumps({"node_id": nid, "t": t, "counts": counts}) + "\n")
