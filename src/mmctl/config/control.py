@@ -33,7 +33,11 @@ class LocomotionConfig:
 
     Not published in the paper.  Our defaults: the task weight W_alpha is large so the
     twist is tracked closely; W_beta penalises arm joint speed 1000x more than base
-    speed, so the base carries the motion and the arm stays near q_des.
+    speed, so the base carries the motion and the arm stays near q_des.  Checked
+    (tests/test_idk.py, tests/test_step.py): for horizontal 0.2 m/s pushes near q_des the
+    base makes 99.99 % of the end-effector velocity (arm joints ~1e-4 rad/s), and a
+    steady 15.8 N push for 2 s leaves the arm within 1e-3 rad of q_des; the twist
+    error from the damping is < 1 %.
     """
 
     w_alpha: tuple[float, ...] = param((1.0e3,) * 6, shape=(6,), gt=0.0, doc="task weights")

@@ -90,7 +90,7 @@ def damped_task_solve(
     L, info = _potrf(a, lower=1, clean=1)
     if info == 0:
         Li, info = _trtri(L, lower=1)
-        f = Li.ravel()
+        f = Li.ravel(order="K")  # no copy (LAPACK returns Fortran order)
         tr_inv = float(f @ f)  # trace(a^-1) = |L^-1|_F^2
         if info == 0 and tr_inv * threshold <= 1.0:
             x, _ = _potrs(L, r, lower=1)

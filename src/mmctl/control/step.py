@@ -264,6 +264,9 @@ class Controller:
         problem = Problem(kin, v_d, q, state.qdot, dt, z)
         qdot_d = None
         for wgt, solver in zip(weights, self._solvers):
+            if wgt >= 1.0:  # no cross-fade running: the one solver
+                qdot_d = solver.solve(problem)
+                break
             if wgt > 0.0:
                 x = solver.solve(problem)
                 qdot_d = wgt * x if qdot_d is None else qdot_d + wgt * x
