@@ -24,7 +24,7 @@ def test_bench_idk_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert data["step"]["p50_us"] > 0.0
     assert data["cycles"] == 30
     assert data["median_abs_diff_vs_paper"] < 1e-6  # same answer as the paper's formula
-    assert "paper_inv: 30/30" in err  # progress goes to stderr
+    assert "bench idk: 30/30" in err  # progress goes to stderr
 
 
 def test_bench_idk_table_and_bad_cycles(capsys: pytest.CaptureFixture[str]) -> None:

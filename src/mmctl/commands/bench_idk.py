@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import os
 import platform
 import sys
 import time
@@ -48,17 +49,21 @@ def _percentiles(ns: Vec) -> dict[str, float]:
             "mean_us": round(float(us.mean()), 2)}
 
 
-def _time(name: str, n: int, cycle: Callable[[int], Any]) -> Vec:
-    """Time ``cycle(i)`` for i in range(n) [ns], progress on stderr."""
-    out = np.empty(n)
-    step = max(1, n // 10)
+def _time_all(fns: dict[str, Callable[[int], Any]], n: int) -> dict[str, Vec]:
+    """Time ``fn(i)`` [ns] for every fn, interleaved (i outer, fn inner) so that load
+    changes on a shared machine hit every variant alike.  Progress on stderr."""
+    out = {name: np.empty(n) for name in fns}
+    items = [(fn, out[name]) for name, fn in fns.items()]
+    step = max(1, n // 20)
     clock = time.perf_counter_ns
     for i in range(n):
-        t0 = clock()
-        cycle(i)
-        out[i] = clock() - t0
+        for fn, dst in items:
+            t0 = clock()
+            fn(i)
+            dst[i] = clock() - t0
         if (i + 1) % step == 0:
-            print(f"\r{name}: {i + 1}/{n}", end="", file=sys.stderr, flush=True)
+            print(f"\rbench idk: {i + 1}/{n} cycles x {len(items)} variants", end="",
+                  file=sys.stderr, flush=True)
     print(file=sys.stderr)
     return out
 
@@ -81,7 +86,7 @@ class _Cases:
         self.gain = gain
 
 
-def _paper_inv(cases: _Cases) -> tuple[Callable[[int], Vec], Callable[[int], Vec]]:
+def _paper_inv(cases: _Cases) -> Callable[[int], Vec]:
     """The paper's implementation: explicit inverses, then the formula (eq. 12-13)."""
     model = cases.model
     G = np.diag(cases.gain)
@@ -98,7 +103,7 @@ def _paper_inv(cases: _Cases) -> tuple[Callable[[int], Vec], Callable[[int], Vec
         J_M = M_inv @ J.T @ np.linalg.inv(J @ M_inv @ J.T)
         return J_M @ cases.v[i] + (eye - J_M @ J) @ G @ (model.q_des - q)
 
-    return cycle, cycle
+    return cycle
 
 
 def _strategies(cfg: Config, cases: _Cases) -> dict[str, Callable[[int], Vec]]:
@@ -209,27 +214,24 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config) if args.config else default_config()
     n = args.cycles
     cases = _Cases(cfg, n, args.seed)
-    timings: dict[str, dict[str, float]] = {}
-    strategies = _strategies(cfg, cases)
-    for name, cycle in strategies.items():
-        for i in range(min(n, 200)):  # warm-up
-            cycle(i)
-        timings[name] = _percentiles(_time(name, n, cycle))
+    fns: dict[str, Callable[[int], Any]] = dict(_strategies(cfg, cases))
     if not args.no_osqp:
         osqp_cycle = _osqp_cycle(cfg, cases)
         if osqp_cycle is not None:
-            timings["constrained-osqp"] = _percentiles(_time("constrained-osqp", n, osqp_cycle))
-    paper, _ = _paper_inv(cases)
-    for i in range(min(n, 200)):
-        paper(i)
-    paper_t = _percentiles(_time("paper_inv", n, paper))
-    # the two implementations agree where the task is well conditioned
-    me = strategies["min-energy"]
+            fns["constrained-osqp"] = osqp_cycle
+    paper = _paper_inv(cases)
+    fns["paper_inv"] = paper
+    fns["step"] = _step_cycle(cfg, cases)
+    for i in range(min(n, 200)):  # warm-up
+        for fn in fns.values():
+            fn(i)
+    raw = _time_all(fns, n)
+    timings = {name: _percentiles(ns) for name, ns in raw.items()}
+    paper_t = timings.pop("paper_inv")
+    step_t = timings.pop("step")
+    # the two implementations agree (where the task is well conditioned)
+    me = fns["min-energy"]
     diffs = [float(np.abs(me(i) - paper(i)).max()) for i in range(min(n, 500))]
-    step = _step_cycle(cfg, cases)
-    for i in range(min(n, 200)):
-        step(i)
-    step_t = _percentiles(_time("step", n, step))
     ours = timings["min-energy"]
     result = {
         "strategies": timings,
@@ -241,11 +243,13 @@ def run(args: argparse.Namespace) -> int:
         "median_abs_diff_vs_paper": float(np.median(diffs)),
         "python": platform.python_version(),
         "gc_enabled": gc.isenabled(),
+        "loadavg_1min": round(os.getloadavg()[0], 2),
     }
     if args.json:
         print(json.dumps(result))
         return 0
-    print(f"IDK cycle time (model evaluation + solve), {n} random configurations each")
+    print(f"IDK cycle time (model evaluation + solve), {n} random configurations each, "
+          f"interleaved; load average {result['loadavg_1min']} on {os.cpu_count()} CPUs")
     print(f"{'strategy':<28}{'p50 [us]':>10}{'p99 [us]':>10}{'mean [us]':>11}")
     rows = [*timings.items(), ("paper_inv (numpy inv)", paper_t), ("step (whole cycle)", step_t)]
     for name, t in rows:
