@@ -20,3 +20,8 @@ class ArmConfig:
     stale_cycles: int = param(
         5, gt=0, doc="cycles without a new controller timestamp before a 'stale' fault"
     )
+    connect_timeout: float = param(
+        2.0, unit="s", gt=0.0, le=60.0,
+        doc="how long connect() waits for the dashboard/RTDE ports and the first RTDE "
+        "package before it reports that nothing answers",
+    )

@@ -1,0 +1,251 @@
+"""The parent-side handle of a fake UR controller running in its own process.
+
+ur_rtde's constructors hold the Python GIL while they block on the network, so the
+fake can never share a process with the client: :class:`FakeURController` spawns it
+(``spawn`` context), talks to it through a pipe (fault injection, the command log) and
+reads its joint state from shared memory (:mod:`mmctl.sim.fake_ur.shared`).
+
+    with FakeURController("127.0.0.5", q_init=q0) as fake:
+        arm = UrRtdeArm(ArmConfig(host="127.0.0.5")); arm.connect()
+        ...
+        fake.set_protective_stop()          # inject a fault
+        fake.commands(CommandKind.SPEEDJ)   # what the client sent
+        fake.state().q                      # joint positions [rad]
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import threading
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import structlog
+
+from mmctl.config.robot import DEFAULT_Q_DES
+from mmctl.errors import TransportError
+from mmctl.sim.fake_ur import server, shared
+from mmctl.sim.fake_ur.log import CommandKind, FakeCommand
+from mmctl.types import ArmState
+
+if TYPE_CHECKING:  # typing.Self is 3.11+; the package supports 3.10
+    from typing_extensions import Self
+
+log = structlog.get_logger("mmctl.fake_ur")
+
+
+class FakeURController:
+    """A fake UR10e controller serving RTDE/dashboard/script on ``host`` (127.x.y.z).
+
+    q_init: initial joint positions (6,) [rad] (default: the preferred configuration
+    ``robot.q_des``); start_timeout [s]: how long :meth:`start` waits for the ports;
+    request_timeout [s]: how long a fault injection waits for the process to answer;
+    log_capacity: entries kept by the process's command log.
+    """
+
+    def __init__(self, host: str, q_init: Sequence[float] | None = None, *,
+                 start_timeout: float = 30.0, request_timeout: float = 10.0,
+                 log_capacity: int = 200_000):
+        q = tuple(float(x) for x in (DEFAULT_Q_DES if q_init is None else q_init))
+        if len(q) != 6 or not all(np.isfinite(q)):
+            raise ValueError(f"q_init must be 6 finite joint angles [rad], got {q_init!r}")
+        self.host = host
+        self.q_init = q
+        self.start_timeout = start_timeout
+        self.request_timeout = request_timeout
+        self.log_capacity = log_capacity
+        self._ctx = multiprocessing.get_context("spawn")
+        self._block = shared.new_block(self._ctx)
+        self._proc: Any = None
+        self._conn: Any = None
+        self._lock = threading.Lock()
+        self._log: list[FakeCommand] = []
+        self._child_next = 0
+        self._seq_base = 0
+
+    # -- lifecycle -----------------------------------------------------------------------
+
+    def start(self) -> Self:
+        """Spawn the process and wait until its three ports accept connections."""
+        if self.alive:
+            return self
+        parent, child = self._ctx.Pipe(duplex=True)
+        proc = self._ctx.Process(
+            target=server.run, args=(self.host, self.q_init, self._block, child,
+                                      self.log_capacity),
+            name=f"fake-ur-{self.host}", daemon=True)
+        proc.start()
+        child.close()
+        if not parent.poll(self.start_timeout):
+            _kill(proc)
+            parent.close()
+            raise TransportError(f"fake UR on {self.host} did not start within "
+                                 f"{self.start_timeout} s")
+        try:
+            status, detail = parent.recv()
+        except EOFError:
+            status, detail = "error", f"process exited with code {proc.exitcode}"
+        if status != "ready":
+            _kill(proc)
+            parent.close()
+            raise TransportError(f"fake UR on {self.host}: {detail}")
+        self._proc, self._conn = proc, parent
+        self._child_next = 0
+        self._seq_base = self._log[-1].seq + 1 if self._log else 0
+        log.debug("fake_ur_started", host=self.host, pid=proc.pid)
+        return self
+
+    def stop(self) -> None:
+        """Ask the process to close its ports and exit (idempotent)."""
+        proc = self._proc
+        if proc is None:
+            return
+        if proc.is_alive():
+            try:
+                self._fetch_log()
+                self._request("shutdown")
+            except TransportError as exc:
+                log.warning("fake_ur_stop_request_failed", host=self.host, error=str(exc))
+            proc.join(5.0)
+        _kill(proc)
+        self._forget()
+
+    def kill(self) -> None:
+        """SIGKILL the process (a controller that vanishes: sockets reset, no goodbye).
+
+        The command log received so far is fetched first; the joint state in shared
+        memory keeps the last sample.
+        """
+        proc = self._proc
+        if proc is None:
+            return
+        if proc.is_alive():
+            try:
+                self._fetch_log()
+            except TransportError as exc:
+                log.warning("fake_ur_log_lost", host=self.host, error=str(exc))
+        _kill(proc)
+        self._forget()
+
+    def restart(self, q_init: Sequence[float] | None = None) -> Self:
+        """Start a new process after :meth:`kill`/:meth:`stop` (a rebooted controller:
+        no program running, controller time from 0), at ``q_init`` or the last pose."""
+        self.stop()
+        if q_init is None:
+            q_init = self.state().q
+        self.q_init = tuple(float(x) for x in q_init)
+        return self.start()
+
+    @property
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- observation ---------------------------------------------------------------------
+
+    def state(self) -> ArmState:
+        """The joints as the fake's process last published them (shared memory, no I/O).
+
+        q (6,) [rad], qd (6,) [rad/s], controller_time [s], runtime_state (2 = PLAYING),
+        safety_bits (RTDE safety status bits).  Before start: q_init at rest.
+        """
+        t, q, qd, runtime, safety = shared.read(self._block)
+        if t == 0.0 and self._proc is None and not any(q):
+            q = list(self.q_init)
+        return ArmState(np.array(q), np.array(qd), t, runtime, safety)
+
+    def commands(self, kind: CommandKind | None = None) -> list[FakeCommand]:
+        """The command log so far (all kinds, or one), oldest first; see :class:`FakeCommand`."""
+        if self.alive:
+            self._fetch_log()
+        return [c for c in self._log if kind is None or c.kind is kind]
+
+    # -- fault injection (each returns the controller time [s] at which it took effect:
+    #    the first sample that shows it carries a later timestamp) ---------------------------
+
+    def set_protective_stop(self, on: bool = True) -> float:
+        """Protective stop: safety bits 2 and 10, joints brake, speed commands ignored."""
+        return self._request("protective_stop", on)
+
+    def set_emergency_stop(self, on: bool = True) -> float:
+        """Emergency stop: safety bits 6, 7 and 10, joints brake, speed commands ignored."""
+        return self._request("emergency_stop", on)
+
+    def stop_program(self) -> float:
+        """Stop the running program (runtime state STOPPED), like the pendant's stop."""
+        return self._request("stop_program")
+
+    def freeze_stream(self, on: bool = True) -> float:
+        """Stop (or resume) sending RTDE data packages; sockets stay open."""
+        return self._request("freeze", on)
+
+    def set_remote_control(self, on: bool) -> float:
+        """Remote (True) or local (False) control, as the dashboard reports it."""
+        return self._request("remote_control", on)
+
+    def set_digital_input(self, index: int, on: bool) -> float:
+        """Set bit ``index`` (0-17) of ``actual_digital_input_bits`` (a handle button)."""
+        if not 0 <= index < 64:
+            raise ValueError(f"digital input index must be 0..63, got {index}")
+        return self._request("digital_input", index, on)
+
+    def set_q(self, q: Sequence[float]) -> float:
+        """Teleport the joints to ``q`` (6,) [rad], at rest."""
+        values = [float(x) for x in q]
+        if len(values) != 6 or not all(np.isfinite(values)):
+            raise ValueError(f"q must be 6 finite joint angles [rad], got {q!r}")
+        return self._request("set_q", values)
+
+    # -- internals -----------------------------------------------------------------------
+
+    def _request(self, op: str, *args: object) -> Any:
+        with self._lock:
+            conn = self._conn
+            if conn is None or not self.alive:
+                raise TransportError(f"fake UR on {self.host} is not running")
+            try:
+                conn.send((op, *args))
+                if not conn.poll(self.request_timeout):
+                    raise TransportError(f"fake UR on {self.host} did not answer {op!r}")
+                status, t, payload = conn.recv()
+            except (EOFError, OSError) as exc:
+                raise TransportError(f"fake UR on {self.host} is gone ({exc})") from None
+        if status != "ok":
+            raise ValueError(payload)
+        if op == "log":
+            return payload
+        return t
+
+    def _fetch_log(self) -> None:
+        entries: list[FakeCommand] = self._request("log", self._child_next)
+        if entries:
+            self._child_next = entries[-1].seq + 1
+            base = self._seq_base
+            self._log.extend(e._replace(seq=e.seq + base) for e in entries)
+
+    def _forget(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
+        self._proc = None
+        self._conn = None
+
+
+def _kill(proc: Any) -> None:
+    if proc.is_alive():
+        try:
+            os.kill(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    proc.join(5.0)

@@ -1,0 +1,62 @@
+"""The fake controller's command log: what a client sent, stamped with controller time."""
+
+from __future__ import annotations
+
+from collections import deque
+from enum import Enum
+from typing import NamedTuple
+
+
+class CommandKind(str, Enum):
+    """What a log entry records."""
+
+    SPEEDJ = "speedj"  # qd, acceleration, time
+    SPEED_STOP = "speed_stop"  # deceleration
+    STOP_SCRIPT = "stop_script"
+    RTDE_COMMAND = "rtde_command"  # any other ur_rtde command type: code
+    DASHBOARD = "dashboard"  # text = the command line, reply = the answer
+    SCRIPT = "script"  # text = program name (or the line), code = characters received
+    PROGRAM = "program"  # text = "started" / "stopped" / "rejected: <why>"
+    CONNECTION = "connection"  # text = "<port> open" / "<port> closed"
+
+
+class FakeCommand(NamedTuple):
+    """One entry of the command log.
+
+    seq: running number (gaps mean the ring dropped entries); controller_time: the
+    fake controller's timestamp [s] when the command arrived; kind: see
+    :class:`CommandKind`; qd: (6,) joint speeds [rad/s] of a speedJ; acceleration
+    [rad/s^2] and time [s] of a speedJ; deceleration [rad/s^2] of a speedStop; code:
+    the ur_rtde command number (RTDE_COMMAND) or a size; text/reply: dashboard line and
+    answer, program name, etc.
+    """
+
+    seq: int
+    controller_time: float
+    kind: CommandKind
+    qd: tuple[float, ...] | None = None
+    acceleration: float | None = None
+    time: float | None = None
+    deceleration: float | None = None
+    code: int | None = None
+    text: str | None = None
+    reply: str | None = None
+
+
+class CommandLog:
+    """A bounded ring of :class:`FakeCommand` (the oldest entries are dropped)."""
+
+    def __init__(self, capacity: int = 200_000):
+        self._ring: deque[FakeCommand] = deque(maxlen=capacity)
+        self._seq = 0
+
+    def add(self, controller_time: float, kind: CommandKind, **fields: object) -> None:
+        self._ring.append(FakeCommand(self._seq, controller_time, kind, **fields))  # type: ignore[arg-type]
+        self._seq += 1
+
+    def since(self, seq: int) -> list[FakeCommand]:
+        """Entries with ``entry.seq >= seq`` (oldest first)."""
+        if not self._ring or self._ring[-1].seq < seq:
+            return []
+        start = max(0, seq - self._ring[0].seq)
+        return [self._ring[i] for i in range(start, len(self._ring))]

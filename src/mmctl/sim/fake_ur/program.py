@@ -1,0 +1,136 @@
+"""Programs sent to the script port (30003), and the emulated ur_rtde control script.
+
+ur_rtde uploads one URScript program, ``def rtde_control(): ... end``.  Its main loop
+runs once per controller cycle and talks to the client through RTDE registers
+(offset 0, or 24 with ur_rtde's "upper range" flag):
+
+* ``input_int_register_0`` holds the command number (0 = none, 9 = speedJ, 15 =
+  speedStop, 255 = stop the script, ...), the input double registers its arguments;
+* ``output_int_register_0`` is the handshake: 1 = ready for a command, 2 = done.
+
+Real-time commands (speedJ, servoJ, ...) are executed and answered "ready" on every
+cycle; any other command is executed once, answered "done", and the script answers
+"ready" again after the client has cleared the command register (written 0).  Command
+255 ends the program.  This module reproduces that behaviour; the motion itself is
+:class:`~mmctl.sim.fake_ur.plant.JointPlant`'s.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+
+from mmctl.sim.fake_ur.plant import JointPlant
+
+SPEEDJ = 9
+SPEED_STOP = 15
+SERVO_STOP = 16
+STOPL = 33
+STOPJ = 34
+STOP_SCRIPT = 255
+#: Commands the script executes every cycle and answers with "ready" at once.
+REALTIME_COMMANDS = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
+READY = 1
+DONE = 2
+
+_DEF = re.compile(r"^def\s+(\w+)\s*\(\s*\)\s*:", re.MULTILINE)
+_END = re.compile(r"^end\b", re.MULTILINE)
+_OFFSET = re.compile(r"reg_offset_int\s*=\s*(?:#[^\n]*\n?)?\s*(\d+)")
+
+
+class Registers:
+    """The RTDE general purpose registers 0..47 in both directions."""
+
+    def __init__(self) -> None:
+        self.in_int = [0] * 48
+        self.in_double = [0.0] * 48
+        self.out_int = [0] * 48
+        self.out_double = [0.0] * 48
+
+
+class ScriptReceiver:
+    """Reassembles programs from the bytes arriving on the script port."""
+
+    def __init__(self) -> None:
+        self._text = ""
+
+    def feed(self, data: bytes) -> list[tuple[str, str]]:
+        """Add bytes; return every complete ``(name, program text)`` (a single line that is
+        not a ``def`` comes back with the name ``""``)."""
+        self._text += data.decode("utf-8", errors="replace")
+        programs: list[tuple[str, str]] = []
+        while self._text:
+            stripped = self._text.lstrip()
+            if not stripped:
+                self._text = ""
+                break
+            head = _DEF.match(stripped)
+            if head is None:
+                if "\n" not in stripped:
+                    break
+                line, _, rest = stripped.partition("\n")
+                programs.append(("", line))
+                self._text = rest
+                continue
+            end = _END.search(stripped, head.end())
+            if end is None:
+                break
+            stop = stripped.find("\n", end.end())
+            stop = len(stripped) if stop < 0 else stop + 1
+            programs.append((head.group(1), stripped[:stop]))
+            self._text = stripped[stop:]
+        return programs
+
+
+def register_offset(program_text: str) -> int:
+    """The register offset ur_rtde injected into its control script (0 or 24)."""
+    found = _OFFSET.search(program_text)
+    return int(found.group(1)) if found else 0
+
+
+class RtdeControlProgram:
+    """The ur_rtde control script, one :meth:`cycle` per controller period.
+
+    ``on_command(code)`` is called once each time a command is executed (for logging);
+    ``stop_deceleration`` [rad/s^2] is how the joints stop when the program ends.
+    """
+
+    def __init__(self, regs: Registers, plant: JointPlant, offset: int = 0):
+        self.regs = regs
+        self.plant = plant
+        self.offset = offset
+        self.executing = False
+        self.running = True
+        self.motion_allowed: Callable[[], bool] = lambda: True
+        regs.out_int[offset] = READY  # signal_ready() before the main loop
+
+    def cycle(self) -> None:
+        """One pass of the script's main loop."""
+        if not self.running:
+            return
+        regs, off = self.regs, self.offset
+        cmd = regs.in_int[off]
+        if cmd in REALTIME_COMMANDS:
+            self._process(cmd)
+            regs.out_int[off] = READY
+        elif cmd == 0:
+            self.executing = False
+            regs.out_int[off] = READY
+        else:
+            if not self.executing:
+                self._process(cmd)
+            self.executing = True
+
+    def _process(self, cmd: int) -> None:
+        regs, off = self.regs, self.offset
+        d = regs.in_double
+        if cmd == SPEEDJ:
+            if self.motion_allowed():
+                self.plant.speed(d[off:off + 6], d[off + 6])
+        elif cmd in (SPEED_STOP, SERVO_STOP, STOPJ, STOPL):
+            self.plant.stop(d[off])
+        elif cmd == STOP_SCRIPT:
+            self.running = False
+            return
+        if cmd not in REALTIME_COMMANDS:
+            regs.out_int[off] = DONE
