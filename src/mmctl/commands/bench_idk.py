@@ -11,8 +11,8 @@ the whole pure ``Controller.step`` (admittance, model, IDK, limits, energies).
 cycle's unconstrained solution: bounds bite only where a joint limit does);
 ``constrained-from-rest`` starts every cycle from rest with T = 2 ms, so the
 acceleration bounds are active and the QP runs every cycle (the worst case);
-``constrained-osqp`` solves that same from-rest QP with OSQP (equality task,
-warm started) for comparison.
+``constrained-osqp`` solves that same from-rest QP with OSQP (warm started) for
+comparison.
 """
 
 from __future__ import annotations
@@ -151,7 +151,9 @@ def _strategies(cfg: Config, cases: _Cases) -> dict[str, Callable[[int], Vec]]:
 
 
 def _osqp_cycle(cfg: Config, cases: _Cases) -> Callable[[int], Vec] | None:
-    """The equality-constrained energy QP with OSQP, warm started, same bounds."""
+    """The from-rest QP with OSQP (warm started): the same problem as ours, i.e. the
+    soft task ``|qd - z|_M^2 / 2 + rho |J qd - v_d|^2 / 2`` within the same box (a hard
+    equality task is primal infeasible from rest)."""
     try:
         import osqp
         from scipy import sparse
@@ -162,28 +164,27 @@ def _osqp_cycle(cfg: Config, cases: _Cases) -> Callable[[int], Vec] | None:
     limits = Limits(cfg.limits, cfg.base.mecanum)
     model = cases.model
     T = 1.0 / cfg.loop.rate_hz
-    P = sparse.csc_matrix(np.triu(np.ones((9, 9))))
-    A = sparse.csc_matrix(np.vstack((np.ones((6, 9)), np.eye(9))))
+    rho = cfg.idk.constrained.task_weight
     solver = osqp.OSQP()
-    solver.setup(P=P, q=np.zeros(9), A=A, l=-np.ones(15), u=np.ones(15), verbose=False,
+    solver.setup(P=sparse.csc_matrix(np.triu(np.ones((9, 9)))), q=np.zeros(9),
+                 A=sparse.csc_matrix(np.eye(9)), l=-np.ones(9), u=np.ones(9), verbose=False,
                  eps_abs=cfg.idk.constrained.eps, eps_rel=cfg.idk.constrained.eps,
-                 max_iter=cfg.idk.constrained.max_iter * 20, polishing=True, warm_starting=True)
+                 max_iter=4000, polishing=True, warm_starting=True)
     rows, cols = np.triu_indices(9)
     order = np.lexsort((rows, cols))  # CSC order of the upper triangle
     p_rows, p_cols = rows[order], cols[order]
-    a_dense_idx = np.argwhere(np.vstack((np.ones((6, 9)), np.eye(9))).T)  # (col, row) CSC
+    zero = np.zeros(9)
 
     def cycle(i: int) -> Vec:
         q = cases.q[i]
         k = model.update(q)
-        M = np.zeros((9, 9))
-        M[:6, :6] = k.M_a
-        M[6:, 6:] = np.diag(k.M_b)
-        Amat = np.vstack((k.J, np.eye(9)))
-        lb, ub = limits.box_bounds(q, np.zeros(9), T)
-        solver.update(Px=M[p_rows, p_cols], Ax=Amat[a_dense_idx[:, 1], a_dense_idx[:, 0]],
-                      q=-(M @ cases.z[i]), l=np.concatenate((cases.v[i], lb)),
-                      u=np.concatenate((cases.v[i], ub)))
+        H = np.zeros((9, 9))
+        H[:6, :6] = k.M_a
+        H[6:, 6:] = np.diag(k.M_b)
+        g = -(H @ cases.z[i]) - rho * (k.J.T @ cases.v[i])
+        H += rho * (k.J.T @ k.J)
+        lb, ub = limits.box_bounds(q, zero, T)
+        solver.update(Px=H[p_rows, p_cols], q=g, l=lb, u=ub)
         return solver.solve(raise_error=False).x
 
     return cycle

@@ -88,23 +88,28 @@ class Limits:
         If ``qdot_prev`` lies outside the speed box, the acceleration bound gives way
         (the bound is the point of the speed box nearest to ``qdot_prev``).
         """
-        lo = np.empty(9)
-        hi = np.empty(9)
-        lo[:6], hi[:6] = self.joint_speed_caps(q[:6])
-        lo[6:8], hi[6:8] = -self.v_lin, self.v_lin
-        lo[8], hi[8] = -self.w_base, self.w_base
-        acc = np.empty(9)
-        acc[:6] = self.a_joint * dt
-        acc[6:8] = self.a_lin * dt
-        acc[8] = self.a_ang * dt
-        lb = np.maximum(lo, qdot_prev - acc)
-        ub = np.minimum(hi, qdot_prev + acc)
-        bad = lb > ub
-        if bad.any():
-            near = np.clip(qdot_prev, lo, hi)
-            lb[bad] = near[bad]
-            ub[bad] = near[bad]
-        return lb, ub
+        qa = q[:6].tolist()
+        prev = qdot_prev.tolist()
+        margin = self.margin
+        lo: list[float] = []
+        hi: list[float] = []
+        for i in range(6):
+            up = (self._qmax[i] - qa[i]) / margin
+            down = (qa[i] - self._qmin[i]) / margin
+            vj = self._vj[i]
+            lo.append(-vj * min(max(down, 0.0), 1.0))
+            hi.append(vj * min(max(up, 0.0), 1.0))
+        lo += [-self.v_lin, -self.v_lin, -self.w_base]
+        hi += [self.v_lin, self.v_lin, self.w_base]
+        acc = [a * dt for a in self._aj] + [self.a_lin * dt] * 2 + [self.a_ang * dt]
+        lb, ub = [], []
+        for i in range(9):
+            low, high = max(lo[i], prev[i] - acc[i]), min(hi[i], prev[i] + acc[i])
+            if low > high:  # braking beats the acceleration limit
+                low = high = min(max(prev[i], lo[i]), hi[i])
+            lb.append(low)
+            ub.append(high)
+        return np.array(lb), np.array(ub)
 
     # --- scales ----------------------------------------------------------------
     def velocity_scale(self, qdot: Vec, q_a: Vec, J: Vec) -> float:
