@@ -193,7 +193,7 @@ class RobotModel:
         model, data = self.arm, self.arm_data
         pin.computeJointJacobians(model, data, q_a)
         pose = pin.updateFramePlacement(model, data, self._tool)
-        p_base = pose.translation  # a fresh array on every call
+        p_base = pose.translation.copy()  # own the data (the property is a view)
         x, y, z = p_base.tolist()
         J = self._J_template.copy()  # base columns' constant entries preset
         J[:, :NA] = pin.getFrameJacobian(model, data, self._tool, _LWA)
@@ -203,4 +203,4 @@ class RobotModel:
         p = np.array((q[6] + c * x - s * y, q[7] + s * x + c * y, z))
         M_a = pin.crba(model, data, q_a) if inertia else _EMPTY
         M_full = self.coupled_inertia(q_a) if (inertia and self.full_inertia) else None
-        return Kinematics(J, M_a, self.M_b, M_full, p_base, pose.rotation, p)
+        return Kinematics(J, M_a, self.M_b, M_full, p_base, pose.rotation.copy(), p)
