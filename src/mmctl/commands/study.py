@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
             "quick": study.quick, "dt": study.dt}
     analysis, doc = write_outputs(args.out, res.executions, meta)
     figures = [] if args.no_figures else write_figures(res.executions, doc["median_user"], args.out)
-    cpu = res.cpu_time + (time.process_time() - cpu0)
+    # workers' CPU time, plus this process's (which includes the work when jobs == 1)
+    cpu = (time.process_time() - cpu0) + (res.cpu_time if args.jobs > 1 else 0.0)
     print(f"\nMedians over {study.users} users (simulation | paper):\n")
     print(median_table(res.executions))
     if len(study.strategies) >= 3:

@@ -111,8 +111,8 @@ class Task:
 
 #: Hole layout of the study (in the task plane, metres from the start handle position;
 #: first coordinate along the robot's forward axis at the start, second to its left).
-#: Two holes are within the arm's reach of the start pose, three are 0.8-1.5 m away;
-#: the moves are 0.3-1.8 m long and the last one is short (0.5 m).
+#: Two holes are within the arm's reach of the start pose (0.4-0.8 m from the arm's
+#: mount), three beyond it (1.2-1.8 m); the moves are 0.3-1.8 m, the last one 0.4 m.
 STUDY_HOLES: tuple[tuple[float, float], ...] = (
     (0.20, 0.25), (-0.15, -0.30), (0.30, 1.45), (-0.10, 1.05), (0.20, 0.75),
 )
