@@ -100,6 +100,7 @@ def test_a_full_queue_drops_and_the_recording_holds_the_rest(tmp_path: Path) -> 
     rec = load_recording(path)
     assert len(rec.cycle) + pub.queue.dropped == 500
     assert list(rec.cycle) == list(range(300))  # the newest were dropped, in order
+    assert rec.dropped == 200
     assert entity_rows(path, layout.DROPPED.path) == 1
     (whole,) = recording_metrics(rec)
     assert whole.trial == 0 and whole.samples == 300

@@ -129,3 +129,34 @@ def test_recording_without_trials_is_one_whole_trial_and_unstopped_runs_to_the_e
     assert (open_trial.samples, open_trial.stop_cycle, open_trial.finished) == (10, 39, False)
     assert math.isclose(open_trial.metrics.x_f, float(np.linalg.norm(
         samples[-1].p - samples[-1].p_des)), rel_tol=1e-15)
+
+
+def test_service_brackets_trials_with_telemetry_off() -> None:
+    """With no destination the loop builds no samples, except while a trial runs."""
+    from types import SimpleNamespace
+
+    from mmctl.config import default_config
+    from mmctl.telemetry.service import TelemetryService
+
+    svc = TelemetryService(default_config())
+    daemon = SimpleNamespace(sample_hook=svc.hook())
+    assert daemon.sample_hook is None and not svc.enabled
+
+    def on_loop(fn):  # type: ignore[no-untyped-def]
+        return fn()  # the daemon runs it on the loop thread
+
+    assert svc.command({"cmd": "trial", "action": "start"}, on_loop, daemon) == {
+        "trial": 1, "started": True}
+    assert daemon.sample_hook is not None
+    for s in HAND:
+        daemon.sample_hook(s)
+    out = svc.command({"cmd": "trial", "action": "stop"}, on_loop, daemon)
+    assert daemon.sample_hook is None
+    assert out["E"] == pytest.approx(3.0) and out["samples"] == 3 and out["trial"] == 1
+    status = svc.command({"cmd": "trial", "action": "status"}, on_loop, daemon)
+    assert status["active"] is False and status["trials"][0]["x_f"] == pytest.approx(0.5)
+    with pytest.raises(TrialError):
+        svc.command({"cmd": "trial", "action": "stop"}, on_loop, daemon)
+    with pytest.raises(Exception, match="expected start, stop or status"):
+        svc.command({"cmd": "trial", "action": "pause"}, on_loop, daemon)
+    svc.close()

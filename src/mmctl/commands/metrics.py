@@ -34,9 +34,10 @@ def run(args: argparse.Namespace) -> int:
                 d["logged"] = logged.get(r.trial)
             print(json.dumps(d))
         return 0
-    dropped = _gaps(rec.cycle)
+    gaps = _gaps(rec.cycle)
     print(f"{args.file}: {len(rec.cycle)} cycles at T = {rec.period * 1e3:g} ms"
-          + (f", {dropped} cycles missing (telemetry drops)" if dropped else ""))
+          + (f", {gaps} cycles without a sample" if gaps else "")
+          + (f" ({rec.dropped} dropped by the telemetry queue)" if rec.dropped else ""))
     print(f"{'trial':>5} {'cycles':>15} {'N':>7} {'E [J]':>9} {'F_h [N]':>9} {'v [m/s]':>9} "
           f"{'x_f [m]':>9} {'T_f [s]':>9}")
     for r in results:

@@ -43,7 +43,8 @@ class Recording(NamedTuple):
 
     cycle: (n,) cycle indices; time_ns: (n,) [ns]; series: full-rate path -> (n, k);
     trials: brackets in start order; info: the static ``telemetry/info`` values
-    (``period_s``, ``loop_rate_hz``, ...).
+    (``period_s``, ``loop_rate_hz``, ...); dropped: samples the queue dropped (the last
+    ``plots/telemetry/dropped`` value).
     """
 
     path: str
@@ -52,6 +53,7 @@ class Recording(NamedTuple):
     series: dict[str, F64]
     trials: list[RecordedTrial]
     info: dict[str, Any]
+    dropped: int = 0
 
     @property
     def period(self) -> float:
@@ -139,7 +141,14 @@ def load_recording(path: str | Path) -> Recording:
     t_ns = table.column(layout.TIMELINE_TIME).cast("int64").to_numpy(zero_copy_only=False)
     series = {k: v[present] for k, v in series.items()}
     return Recording(str(path), cycle, np.asarray(t_ns, np.int64)[present], series,
-                     _trials(store), _info(store))
+                     _trials(store), _info(store), _dropped(store))
+
+
+def _dropped(store: Any) -> int:
+    table = _table(store, layout.TIMELINE_CYCLE, [f"/{layout.DROPPED.path}"])
+    col = _matrix(table, column_name(layout.DROPPED.path), 1)[:, 0]
+    col = col[~np.isnan(col)]
+    return int(col.max()) if len(col) else 0
 
 
 def _info(store: Any) -> dict[str, Any]:
