@@ -140,6 +140,19 @@ class _Index:
         return self._array
 
 
+def _scene_descriptors(rr: Any) -> dict[str, Any]:
+    """Component descriptors of the 3-D archetypes, taken from rerun's own column helpers."""
+    z = np.zeros((1, 3))
+    cols = [*rr.Transform3D.columns(translation=z, quaternion=[[0.0, 0.0, 0.0, 1.0]]),
+            *rr.Points3D.columns(positions=z), *rr.LineStrips3D.columns(strips=[z]),
+            *rr.Arrows3D.columns(vectors=z, origins=z)]
+    out = {}
+    for c in cols:
+        desc = c.component_descriptor()
+        out[desc.component.split(":")[-1]] = desc
+    return out
+
+
 class RerunSink:
     """Logs columns, scene frames and events to one rerun recording stream.
 
@@ -162,6 +175,9 @@ class RerunSink:
         self._pa: Any = None
         self._chunk: Any = None
         self._desc: Any = None
+        self._scene_desc: dict[str, Any] = {}
+        self._fsl_type: dict[int, Any] = {}
+        self._strip_type: Any = None
         self._path: list[np.ndarray] = []
 
     # -- lifecycle ------------------------------------------------------------------
@@ -192,6 +208,10 @@ class RerunSink:
         self._rec = rec
         rec.send_recording_name(self.recording_name)
         self._desc = next(iter(rr.Scalars.columns(scalars=np.zeros((1, 1))))).component_descriptor()
+        self._scene_desc = _scene_descriptors(rr)
+        item = pa.field("item", pa.float32(), nullable=False)
+        self._fsl_type = {3: pa.list_(item, 3), 4: pa.list_(item, 4)}
+        self._strip_type = pa.list_(pa.field("item", self._fsl_type[3], nullable=False))
         self._log_static()
 
     def close(self) -> None:
@@ -213,9 +233,7 @@ class RerunSink:
             n = len(cols)
             if n == 0:
                 continue
-            index = [_Index(layout.TIMELINE_CYCLE, pa.array(cols.cycle, pa.int64())),
-                     _Index(layout.TIMELINE_TIME,
-                            pa.array(cols.time_ns.astype("timedelta64[ns]"), pa.duration("ns")))]
+            index = self._index(cols.cycle, cols.time_ns)
             for path, values in cols.values.items():
                 k = values.shape[1]
                 offsets = pa.array(np.arange(0, n * k + 1, k, dtype=np.int32))
@@ -225,29 +243,32 @@ class RerunSink:
             self._rec.send_chunks(chunks)
 
     def write_scene(self, cycle: int, t: float, frame: SceneFrame) -> None:
-        """Log one 3-D frame at ``cycle`` / ``t`` [s]."""
-        rr, rec = self._rr, self._rec
-        self._set_time(cycle, t)
-        rec.log(layout.BASE, rr.Transform3D(translation=frame.base_translation,
-                                            quaternion=frame.base_quaternion))
-        rec.log(layout.ARM, rr.LineStrips3D([frame.arm_points], radii=0.03,
-                                            colors=[(90, 150, 230)]))
-        rec.log(layout.ARM_JOINTS, rr.Points3D(frame.arm_points, radii=0.045,
-                                               colors=[(40, 60, 90)]))
-        rec.log(layout.HANDLE, rr.Transform3D(translation=frame.handle_translation,
-                                              quaternion=frame.handle_quaternion))
-        origin = [frame.handle_translation]
-        rec.log(layout.TWIST_ARROW, rr.Arrows3D(vectors=[frame.twist_vector], origins=origin,
-                                                colors=[(40, 200, 80)], radii=0.01))
-        rec.log(layout.FORCE_ARROW, rr.Arrows3D(vectors=[frame.force_vector], origins=origin,
-                                                colors=[(230, 60, 60)], radii=0.01))
-        rec.log(layout.P_DES, rr.Points3D([frame.p_des], radii=0.03, colors=[(240, 180, 0)]))
+        """Send one 3-D frame at ``cycle`` / ``t`` [s] (one ``send_chunks``; the styles
+        were logged once as static data)."""
         self._path.append(frame.base_translation)
         if len(self._path) > 600:
             del self._path[:100]
+        d, vec3, quat = self._scene_desc, self._vec3_rows, self._quat_row
+        pts = frame.arm_points
+        parts: list[tuple[str, list[_Column]]] = [
+            (layout.BASE, [_Column(d["translation"], vec3([frame.base_translation[None]])),
+                           _Column(d["quaternion"], quat(frame.base_quaternion))]),
+            (layout.ARM, [_Column(d["strips"], self._strips_row([pts]))]),
+            (layout.ARM_JOINTS, [_Column(d["positions"], vec3([pts]))]),
+            (layout.HANDLE, [_Column(d["translation"], vec3([frame.handle_translation[None]])),
+                             _Column(d["quaternion"], quat(frame.handle_quaternion))]),
+            (layout.TWIST_ARROW, [_Column(d["vectors"], vec3([frame.twist_vector[None]])),
+                                  _Column(d["origins"], vec3([frame.handle_translation[None]]))]),
+            (layout.FORCE_ARROW, [_Column(d["vectors"], vec3([frame.force_vector[None]])),
+                                  _Column(d["origins"], vec3([frame.handle_translation[None]]))]),
+            (layout.P_DES, [_Column(d["positions"], vec3([frame.p_des[None]]))]),
+        ]
         if len(self._path) >= 2:
-            rec.log(layout.BASE_PATH, rr.LineStrips3D([np.array(self._path)], radii=0.01,
-                                                      colors=[(150, 150, 150)]))
+            parts.append((layout.BASE_PATH, [_Column(d["strips"],
+                                                     self._strips_row([np.array(self._path)]))]))
+        index = self._index(np.array([cycle], np.int64), time_ns(np.array([t])))
+        self._rec.send_chunks([self._chunk.from_columns(path, index, cols)
+                               for path, cols in parts])
 
     def write_event(self, event: Event) -> None:
         """Log a text line and/or a row of named values at the event's cycle."""
@@ -259,6 +280,41 @@ class RerunSink:
             rec.log(event.entity, rr.AnyValues(**dict(event.values)))
 
     # -- internals ------------------------------------------------------------------------
+    def _index(self, cycle: np.ndarray, t_ns: np.ndarray) -> list[_Index]:
+        pa = self._pa
+        return [_Index(layout.TIMELINE_CYCLE, pa.array(cycle, pa.int64())),
+                _Index(layout.TIMELINE_TIME,
+                       pa.array(t_ns.astype("timedelta64[ns]"), pa.duration("ns")))]
+
+    def _fsl(self, values: np.ndarray, width: int) -> Any:
+        """(n, width) -> FixedSizeList<float32 not null>[width] (rerun's vector layout)."""
+        pa = self._pa
+        flat = pa.array(np.ascontiguousarray(values, dtype=np.float32).reshape(-1))
+        return pa.FixedSizeListArray.from_arrays(flat, type=self._fsl_type[width])
+
+    def _vec3_rows(self, rows: list[np.ndarray]) -> Any:
+        """One row per (k_i, 3) array -> list<vec3> column."""
+        pa = self._pa
+        offsets = np.zeros(len(rows) + 1, np.int32)
+        offsets[1:] = np.cumsum([len(r) for r in rows])
+        return pa.ListArray.from_arrays(pa.array(offsets), self._fsl(np.concatenate(rows), 3))
+
+    def _quat_row(self, q: np.ndarray) -> Any:
+        """One (x, y, z, w) quaternion -> a one-row list<vec4> column."""
+        pa = self._pa
+        return pa.ListArray.from_arrays(pa.array(np.array([0, 1], np.int32)),
+                                        self._fsl(q[None], 4))
+
+    def _strips_row(self, strips: list[np.ndarray]) -> Any:
+        """One row holding several (k_i, 3) line strips -> list<list<vec3>> column."""
+        pa = self._pa
+        inner = np.zeros(len(strips) + 1, np.int32)
+        inner[1:] = np.cumsum([len(s) for s in strips])
+        points = self._fsl(np.concatenate(strips), 3)
+        strip_arr = pa.ListArray.from_arrays(pa.array(inner), points, type=self._strip_type)
+        return pa.ListArray.from_arrays(pa.array(np.array([0, len(strips)], np.int32)),
+                                        strip_arr)
+
     def _set_time(self, cycle: int, t: float) -> None:
         rec = self._rec
         rec.set_time(layout.TIMELINE_CYCLE, sequence=int(cycle))
@@ -274,5 +330,18 @@ class RerunSink:
         rec.log(layout.BASE_FOOTPRINT, rr.Boxes3D(centers=[center], half_sizes=[half],
                                                   colors=[(120, 120, 120)]), static=True)
         rec.log(layout.HANDLE, rr.TransformAxes3D(0.15), static=True)
+        styles = [
+            (layout.ARM, rr.LineStrips3D.from_fields(radii=0.03, colors=[(90, 150, 230)])),
+            (layout.ARM_JOINTS, rr.Points3D.from_fields(radii=0.045, colors=[(40, 60, 90)])),
+            (layout.TWIST_ARROW, rr.Arrows3D.from_fields(radii=0.012, colors=[(40, 200, 80)],
+                                                         labels=["v_d"])),
+            (layout.FORCE_ARROW, rr.Arrows3D.from_fields(radii=0.012, colors=[(230, 60, 60)],
+                                                         labels=["f_h"])),
+            (layout.P_DES, rr.Points3D.from_fields(radii=0.035, colors=[(240, 180, 0)],
+                                                   labels=["p_des"])),
+            (layout.BASE_PATH, rr.LineStrips3D.from_fields(radii=0.01, colors=[(150, 150, 150)])),
+        ]
+        for path, style in styles:
+            rec.log(path, style, static=True)
         if self.static:
             rec.log("telemetry/info", rr.AnyValues(**self.static), static=True)
