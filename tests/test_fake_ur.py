@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mmctl.errors import TransportError
-from mmctl.sim.fake_ur import CommandKind, FakeURController
+from mmctl.sim.fake_ur import CommandKind, FakeURController, start_fake_ur
 from mmctl.sim.fake_ur import dashboard as dash
 from mmctl.sim.fake_ur.log import CommandLog
 from mmctl.sim.fake_ur.model import ControllerModel, RuntimeState
@@ -305,15 +305,15 @@ def _wait(predicate, timeout: float = 20.0) -> None:  # type: ignore[no-untyped-
 
 @pytest.mark.timeout(120)
 def test_process_lifecycle_state_and_hooks(loopback_host: str) -> None:
-    fake = FakeURController(loopback_host, q_init=Q0)
-    assert fake.state().q.tolist() == Q0  # before start: q_init
+    assert FakeURController(loopback_host, q_init=Q0).state().q.tolist() == Q0  # before start
+    fake = start_fake_ur(loopback_host, q_init=Q0)
     with fake:
         _wait(lambda: fake.state().controller_time > 0.02)
         st0 = fake.state()
         assert st0.q.tolist() == pytest.approx(Q0) and st0.runtime_state == RuntimeState.STOPPED
         assert st0.safety_bits == 1
         with pytest.raises(TransportError, match="cannot listen"):
-            FakeURController(loopback_host).start()  # ports taken
+            FakeURController(fake.host).start()  # ports taken
         t = fake.set_protective_stop()
         _wait(lambda: fake.state().controller_time > t)
         assert fake.state().safety_bits == (1 << 2) | (1 << 10)
@@ -323,7 +323,7 @@ def test_process_lifecycle_state_and_hooks(loopback_host: str) -> None:
         fake.set_emergency_stop(False)
         fake.set_q([0.0] * 6)
         assert fake.state().q.tolist() == [0.0] * 6
-        with socket.create_connection((loopback_host, 29999), timeout=5) as s, \
+        with socket.create_connection((fake.host, 29999), timeout=5) as s, \
                 s.makefile("rb") as reader:
             assert reader.readline() == b"Connected: Universal Robots Dashboard Server\n"
             fake.set_remote_control(False)
@@ -347,9 +347,9 @@ def test_process_lifecycle_state_and_hooks(loopback_host: str) -> None:
 @pytest.mark.timeout(120)
 def test_real_receive_interface_parses_every_default_variable(loopback_host: str) -> None:
     """ur_rtde's RTDEReceiveInterface with its default (all-variables) recipe."""
-    with FakeURController(loopback_host, q_init=Q0) as fake:
+    with start_fake_ur(loopback_host, q_init=Q0) as fake:
         fake.set_digital_input(3, True)
-        _check_receive_interface(loopback_host, fake)
+        _check_receive_interface(fake.host, fake)
 
 
 def _check_receive_interface(host: str, fake: FakeURController) -> None:

@@ -124,6 +124,7 @@ def _jog(arm: UrRtdeArm, joint: int, speed: float, seconds: float) -> int:
         pause = deadline - time.perf_counter()
         if pause > 0:
             time.sleep(pause)
+    _fresh_state(arm)  # stop() uses speedStop after a fresh sample
     arm.stop()
     return cycles
 

@@ -158,18 +158,18 @@ class UrRtdeArm:
 
         Costs ~1 s: each ur_rtde destructor sleeps 0.5 s (holding the GIL).
         """
-        ctrl, recv = self._ctrl, self._recv
-        if ctrl is None and recv is None:
+        if self._ctrl is None and self._recv is None:
             return
-        self._ctrl = self._recv = None
         try:
-            if ctrl is not None and recv is not None and self._fresh(ctrl, recv):
-                if not ctrl.speedStop(self.config.stop_deceleration):
+            if self._fresh():
+                if not self._ctrl.speedStop(self.config.stop_deceleration):
                     log.warning("arm_speed_stop_refused", host=self.host)
-                ctrl.stopScript()
+                self._ctrl.stopScript()
+        except RuntimeError as exc:
+            log.warning("arm_close_stop_failed", host=self.host, why=str(exc))
         finally:
             self._healthy = False
-            del ctrl, recv  # ur_rtde's destructors disconnect
+            self._ctrl = self._recv = None  # ur_rtde's destructors disconnect
             log.info("arm_closed", host=self.host)
 
     def __enter__(self) -> Self:
@@ -183,13 +183,15 @@ class UrRtdeArm:
 
     def read_state(self) -> ArmState:
         """The newest RTDE sample; raises SafetyFault (see the module docstring)."""
-        ctrl, recv = self._ctrl, self._recv
-        if ctrl is None or recv is None:
+        # No local references to the ur_rtde objects in methods that raise: a kept
+        # exception's traceback would keep them alive after close(), and their
+        # destructors (0.5 s with the GIL held) would run at some later moment.
+        if self._ctrl is None or self._recv is None:
             self._healthy = False
             raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host, why="not connected")
-        t = recv.getTimestamp()
-        state = ArmState(np.array(recv.getActualQ()), np.array(recv.getActualQd()), t,
-                         recv.getRuntimeState(), recv.getSafetyStatusBits())
+        t = self._recv.getTimestamp()
+        state = ArmState(np.array(self._recv.getActualQ()), np.array(self._recv.getActualQd()), t,
+                         self._recv.getRuntimeState(), self._recv.getSafetyStatusBits())
         self.last_state = state
         if t != self._last_time:
             self._last_time = t
@@ -197,9 +199,10 @@ class UrRtdeArm:
         else:
             self._stale += 1
         self._healthy = False
-        if not (ctrl.isConnected() and recv.isConnected()):
+        control, receive = self._ctrl.isConnected(), self._recv.isConnected()
+        if not (control and receive):
             raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host,
-                              control=ctrl.isConnected(), receive=recv.isConnected())
+                              control=control, receive=receive)
         _check_safety(state.safety_bits, t)
         if state.runtime_state != PLAYING:
             raise SafetyFault(FaultCause.ARM_NOT_PLAYING, runtime_state=state.runtime_state,
@@ -218,8 +221,7 @@ class UrRtdeArm:
         [rad/s^2] (default ``arm.speedj_acceleration``, capped at 40); dt [s] (default
         one period).  Returns ur_rtde's answer, which says nothing about the link's
         health.  Non-finite input raises SafetyFault(NON_FINITE) and sends nothing."""
-        ctrl = self._ctrl
-        if ctrl is None:
+        if self._ctrl is None or not self._ctrl.isConnected():
             raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host, why="not connected")
         v = [float(x) for x in qd]
         a = self.config.speedj_acceleration if acceleration is None else float(acceleration)
@@ -231,7 +233,11 @@ class UrRtdeArm:
         ratio = max([abs(x) * k for x, k in zip(v, self._inv_limits)])
         if ratio > 1.0:
             v = [x / ratio for x in v]
-        return bool(ctrl.speedJ(v, min(max(a, 0.0), UR_ACCELERATION_MAX), t))
+        try:
+            return bool(self._ctrl.speedJ(v, min(max(a, 0.0), UR_ACCELERATION_MAX), t))
+        except RuntimeError as exc:  # the write failed and ur_rtde's own reconnect too
+            raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host,
+                              why=str(exc)) from None
 
     def stop(self, deceleration: float | None = None) -> None:
         """Bring the joints to rest with ``deceleration`` [rad/s^2] (default
@@ -243,29 +249,31 @@ class UrRtdeArm:
         """
         d = self.config.stop_deceleration if deceleration is None else float(deceleration)
         d = min(max(d, 1e-3), UR_ACCELERATION_MAX) if math.isfinite(d) else UR_ACCELERATION_MAX
-        ctrl, recv = self._ctrl, self._recv
-        if ctrl is None or recv is None or not ctrl.isConnected():
+        if self._ctrl is None or self._recv is None or not self._ctrl.isConnected():
             log.warning("arm_stop_not_sent", host=self.config.host, why="not connected")
             return
-        if self._fresh(ctrl, recv):
-            if ctrl.speedStop(d):
-                return
-            log.warning("arm_speed_stop_refused", host=self.config.host)
-        ctrl.speedJ([0.0] * 6, d, self._dt)
+        try:
+            if self._fresh():
+                if self._ctrl.speedStop(d):
+                    return
+                log.warning("arm_speed_stop_refused", host=self.config.host)
+            self._ctrl.speedJ([0.0] * 6, d, self._dt)
+        except RuntimeError as exc:  # the link broke under the call
+            log.warning("arm_stop_not_sent", host=self.config.host, why=str(exc))
 
     def digital_input(self, index: int) -> bool:
         """Digital input ``index`` (0-7 standard, 8-15 configurable, 16-17 tool)."""
-        recv = self._recv
-        if recv is None:
+        if self._recv is None:
             raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host, why="not connected")
-        return bool((int(recv.getActualDigitalInputBits()) >> index) & 1)
+        return bool((int(self._recv.getActualDigitalInputBits()) >> index) & 1)
 
     # -- internals -----------------------------------------------------------------------
 
-    def _fresh(self, ctrl: Any, recv: Any) -> bool:
+    def _fresh(self) -> bool:
         """The newest read_state was healthy and brought a new sample."""
-        return (self._healthy and self._stale == 0 and ctrl.isConnected()
-                and recv.isConnected())
+        return (self._healthy and self._stale == 0 and self._ctrl is not None
+                and self._recv is not None and self._ctrl.isConnected()
+                and self._recv.isConnected())
 
 
 

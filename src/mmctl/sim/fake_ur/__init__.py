@@ -11,12 +11,12 @@ from typing import Any
 
 from mmctl.sim.fake_ur.log import CommandKind, FakeCommand
 
-__all__ = ["CommandKind", "FakeCommand", "FakeURController"]
+__all__ = ["CommandKind", "FakeCommand", "FakeURController", "start_fake_ur"]
 
 
 def __getattr__(name: str) -> Any:
-    if name == "FakeURController":
-        from mmctl.sim.fake_ur.controller import FakeURController
+    if name in ("FakeURController", "start_fake_ur"):
+        from mmctl.sim.fake_ur import controller
 
-        return FakeURController
+        return getattr(controller, name)
     raise AttributeError(name)

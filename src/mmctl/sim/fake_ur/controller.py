@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import random
 import signal
 import threading
 from collections.abc import Sequence
@@ -240,6 +241,24 @@ class FakeURController:
             self._conn.close()
         self._proc = None
         self._conn = None
+
+
+def start_fake_ur(host: str, q_init: Sequence[float] | None = None, attempts: int = 8,
+                  **options: Any) -> FakeURController:
+    """A started :class:`FakeURController` on ``host``, or, if its ports are taken (another
+    test run or simulation on this machine), on a random 127.x.y.z address; the address
+    used is ``.host``."""
+    candidates = [host] + [f"127.{random.randint(100, 254)}.{random.randint(0, 255)}."
+                           f"{random.randint(2, 254)}" for _ in range(attempts - 1)]
+    for candidate in candidates:
+        fake = FakeURController(candidate, q_init, **options)
+        try:
+            return fake.start()
+        except TransportError as exc:
+            if "in use" not in str(exc):
+                raise
+            log.warning("fake_ur_address_taken", host=candidate)
+    raise TransportError(f"no free loopback address for a fake UR after {attempts} attempts")
 
 
 def _kill(proc: Any) -> None:
