@@ -1,5 +1,11 @@
 """Measure what telemetry costs the control loop: the same body, telemetry off vs on.
 
+:func:`windows_on_daemon` does it on a running daemon (`mmctl bench loop --telemetry`):
+consecutive measurement windows alternate off / on (off, on, off, on, ...); for each
+"on" window a publisher recording to an ``.rrd`` is started and the daemon's sample hook
+installed, for each "off" window both are removed.  Timings come from the daemon's own
+timing ring and are pooled per condition.
+
 :func:`compare` runs a real :class:`~mmctl.runtime.loop.CycleLoop` for several phases in
 one process, alternating off / on (off, on, off, on, ...), each phase with a fresh
 timing ring, and pools the per-cycle timings of each condition.  "On" means the whole
@@ -102,7 +108,11 @@ def compare(cfg: Config, body_for: BodyFactory, seconds: float = 10.0, phases: i
     finally:
         if tmp is not None:
             tmp.cleanup()
-    s_off, s_on = _pool(done, False), _pool(done, True)
+    return _report(done)
+
+
+def _report(phases: list[Phase]) -> dict[str, Any]:
+    s_off, s_on = _pool(phases, False), _pool(phases, True)
     growth = ((s_on.compute_p99_us - s_off.compute_p99_us) / s_off.compute_p99_us
               if s_off.cycles else 0.0)
     return {
@@ -111,11 +121,68 @@ def compare(cfg: Config, body_for: BodyFactory, seconds: float = 10.0, phases: i
         "compute_p99_growth": round(growth, 4),
         "misses_off": s_off.missed,
         "misses_on": s_on.missed,
-        "published": sum(p.published for p in done),
-        "dropped": sum(p.dropped for p in done),
-        "flush_max_us": max(p.flush_max_us for p in done),
-        "phases": len(done),
+        "published": sum(p.published for p in phases),
+        "dropped": sum(p.dropped for p in phases),
+        "flush_max_us": max(p.flush_max_us for p in phases),
+        "phases": len(phases),
     }
+
+
+def windows_on_daemon(daemon: Any, seconds: float, phases: int = 4,
+                      record_dir: Path | None = None) -> dict[str, Any]:
+    """Alternate telemetry off/on windows of ``seconds / phases`` on a running daemon.
+
+    daemon: started (loop running) and armed, with ``cfg``, ``ring``, ``sample_hook`` and
+    ``_t0_ns``; its own sample hook is restored at the end.  Returns the same dict as
+    :func:`compare`.  The daemon's ring must hold at least one window of cycles.
+    """
+    import time
+
+    cfg, ring = daemon.cfg, daemon.ring
+    n = max(2, phases)
+    window = seconds / n
+    tmp = None
+    if record_dir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="mmctl-telemetry-bench-")
+        record_dir = Path(tmp.name)
+    import pyarrow  # noqa: F401 -- import the heavy parts once, outside the windows
+    import rerun
+    import rerun.chunk  # noqa: F401
+
+    settle = min(0.5, window / 10)
+    saved = daemon.sample_hook
+    done: list[Phase] = []
+    try:
+        for i in range(n):
+            on = i % 2 == 1
+            service = None
+            if on:
+                service = TelemetryService(
+                    cfg, Destinations(record=str(record_dir / f"bench-window{i}.rrd")))
+                service.start(ring, daemon._t0_ns)
+                daemon.sample_hook = service.hook()
+            else:
+                daemon.sample_hook = None
+            time.sleep(settle)  # opening the recording is start-up cost, not steady state
+            c0 = ring.count
+            time.sleep(window)
+            snap = ring.snapshot(ring.count - c0)
+            stats: dict[str, Any] = {}
+            if service is not None:
+                pub = service.publisher
+                daemon.sample_hook = None
+                service.close()
+                stats = pub.stats()
+                if pub.error is not None:
+                    raise pub.error
+            done.append(Phase(on, snap, int(stats.get("published", 0)),
+                              int(stats.get("dropped", 0)),
+                              float(stats.get("flush_max_us", 0.0))))
+    finally:
+        daemon.sample_hook = saved
+        if tmp is not None:
+            tmp.cleanup()
+    return _report(done)
 
 
 def format_report(r: dict[str, Any]) -> str:
