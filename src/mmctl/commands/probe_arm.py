@@ -41,12 +41,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
     import sys
 
     import numpy as np
 
-    from mmctl.config import default_config, load_config
+    from mmctl.config import config_from_dict, default_config, load_config, to_dict
     from mmctl.errors import MmctlError, SafetyFault
     from mmctl.runtime.logging import setup_logging
     from mmctl.transports.ur_rtde_arm import UrRtdeArm
@@ -56,7 +55,11 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.speed) and math.isfinite(args.seconds)) or not 0 < args.seconds <= 60:
         raise MmctlError("--seconds must be in (0, 60] and --speed finite")
     cfg = load_config(args.config) if args.config else default_config()
-    arm_cfg = cfg.arm if not args.host else dataclasses.replace(cfg.arm, host=args.host)
+    if args.host:  # through the validating loader, like any other config value
+        raw = to_dict(cfg)
+        raw["arm"]["host"] = args.host
+        cfg = config_from_dict(raw, "--host")
+    arm_cfg = cfg.arm
     arm = UrRtdeArm(arm_cfg, cfg.limits)
     try:
         arm.connect()

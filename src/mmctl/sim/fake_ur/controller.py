@@ -20,6 +20,7 @@ import os
 import random
 import signal
 import threading
+from collections import deque
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -63,7 +64,7 @@ class FakeURController:
         self._proc: Any = None
         self._conn: Any = None
         self._lock = threading.Lock()
-        self._log: list[FakeCommand] = []
+        self._log: deque[FakeCommand] = deque(maxlen=log_capacity)
         self._child_next = 0
         self._seq_base = 0
 
@@ -135,9 +136,10 @@ class FakeURController:
         """Start a new process after :meth:`kill`/:meth:`stop` (a rebooted controller:
         no program running, controller time from 0), at ``q_init`` or the last pose."""
         self.stop()
-        if q_init is None:
-            q_init = self.state().q
-        self.q_init = tuple(float(x) for x in q_init)
+        q = self.state().q.tolist() if q_init is None else [float(x) for x in q_init]
+        if len(q) != 6:
+            raise ValueError(f"q_init must be 6 joint angles [rad], got {q_init!r}")
+        self.q_init = (q[0], q[1], q[2], q[3], q[4], q[5])
         return self.start()
 
     @property
