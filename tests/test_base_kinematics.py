@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mmctl.config.base import MecanumConfig
@@ -19,6 +19,7 @@ LIMIT = 27.27
 speed = st.floats(-20.0, 20.0, allow_nan=False)
 
 
+@settings(deadline=None)
 @given(speed, speed, speed)
 def test_command_never_exceeds_the_wheel_limit_and_keeps_direction(
     vx: float, vy: float, wz: float
@@ -77,6 +78,7 @@ def test_odometry_of_a_circle_closes() -> None:
     assert o.yaw == pytest.approx(2 * math.pi)
 
 
+@settings(deadline=None)
 @given(st.integers(-(2**31), 2**31 - 1), st.integers(-(2**30), 2**30))
 def test_wrap_delta_undoes_int32_wrap(old: int, delta: int) -> None:
     new = (old + delta + 2**31) % 2**32 - 2**31

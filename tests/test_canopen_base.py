@@ -27,12 +27,14 @@ PERIOD = 0.002  # [s], the 500 Hz control period
 
 
 def make_cfg(**canopen: object) -> Config:
-    """A config on a channel of its own; a generous heartbeat timeout unless given."""
-    co = {"channel": f"test-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 0.5, **canopen}
+    """A config on a channel of its own; generous timeouts unless given (a loaded test
+    machine must not look like a dead drive)."""
+    co = {"channel": f"test-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 5.0,
+          "sdo_timeout": 5.0, **canopen}
     return config_from_dict({"base": {"canopen": co}})
 
 
-def wait_until(pred: Callable[[], bool], timeout: float = 5.0) -> None:
+def wait_until(pred: Callable[[], bool], timeout: float = 20.0) -> None:
     deadline = time.monotonic() + timeout
     while not pred():
         assert time.monotonic() < deadline, "condition not reached"
@@ -53,20 +55,21 @@ def cycles(base: CanopenBase, twist: tuple[float, float, float], n: int) -> list
     return out
 
 
-def stop_and_settle(base: CanopenBase, fakes: FakeDrives) -> Odometry:
-    """stop() each cycle until the drives stand still and odometry has caught up."""
+def stop_and_settle(base: CanopenBase, fakes: FakeDrives,
+                    seen: list[Odometry] | None = None) -> Odometry:
+    """stop() each cycle until the drives stand still and odometry has caught up;
+    every odometry read is appended to ``seen``."""
+    seen = [] if seen is None else seen
+
     def still() -> bool:
         base.stop()
         time.sleep(PERIOD)
-        o = base.read_odometry()
+        seen.append(base.read_odometry())
+        o = seen[-1]
         return bool(np.all(fakes.wheel_velocities() == 0.0)) and o.vx == o.vy == o.wz == 0.0
 
     wait_until(still)
-    for _ in range(3):  # one more round trip so the last positions are in
-        base.stop()
-        time.sleep(PERIOD)
-    wait_until(lambda: base.read_odometry().timestamp > 0)
-    return base.read_odometry()
+    return seen[-1]
 
 
 @pytest.fixture
@@ -119,11 +122,13 @@ def test_commanded_velocities_reach_the_drives_0x60ff(
     twist = (0.2, -0.1, 0.3)
     cycles(base, twist, 5)
     want = counts(cfg, wheel_matrix(cfg.base.mecanum) @ np.array(twist))
+    ids = cfg.base.canopen.node_ids
+    # the zero target enable() sends, then the 5 cycles
+    wait_until(lambda: all(len(fakes.command_log(nid)) >= 6 for nid in ids))
     wait_until(lambda: fakes.target_counts() == want)
     assert len(set(want)) == 4  # four different wheel speeds, each at its own drive
-    for nid, c in zip(cfg.base.canopen.node_ids, want):
-        log = fakes.command_log(nid)
-        assert len(log) >= 5 and log[-1][1] == c
+    for nid, c in zip(ids, want):
+        assert [v for _, v in fakes.command_log(nid)] == [0] + [c] * 5
 
 
 def test_send_twist_is_scaled_to_the_wheel_limit_keeping_direction(
@@ -147,13 +152,12 @@ def test_odometry_integrates_the_wheel_positions(
     cfg: Config, fakes: FakeDrives, base: CanopenBase
 ) -> None:
     odos = cycles(base, (0.3, 0.0, 0.0), 150)
-    end = stop_and_settle(base, fakes)
+    end = stop_and_settle(base, fakes, odos)
     x, y, yaw = fakes.pose()
     assert (end.x, end.y, end.yaw) == pytest.approx((x, y, yaw), abs=1e-3)
     assert end.x > 0.02 and abs(end.y) < 1e-4 and abs(end.yaw) < 1e-4
     # pose = integral of the reported velocity over the reported sample times
     samples = [o for i, o in enumerate(odos) if i == 0 or o.timestamp != odos[i - 1].timestamp]
-    samples.append(end)
     integral = sum(0.5 * (a.vx + b.vx) * (b.timestamp - a.timestamp)
                    for a, b in itertools.pairwise(samples))
     assert end.x - samples[0].x == pytest.approx(integral, rel=0.1, abs=3e-3)

@@ -16,10 +16,12 @@ from mmctl.config import config_from_dict
 from mmctl.sim.fake_serial_bridge import FakeSerialBridge
 
 
-def _config(tmp_path: Path, **canopen: object) -> str:
-    co = {"channel": f"probe-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 0.5, **canopen}
+def _config(tmp_path: Path, serial_timeout: float = 1.0, **canopen: object) -> str:
+    """A config file with generous timeouts (a loaded machine is not a dead link)."""
+    co = {"channel": f"probe-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 5.0,
+          "sdo_timeout": 5.0, **canopen}
     lines = ["base:", "  canopen:"] + [f"    {k}: {v}" for k, v in co.items()]
-    lines += ["  serial:", "    link_timeout: 0.5", "    timeout: 0.1"]
+    lines += ["  serial:", "    link_timeout: 5.0", f"    timeout: {serial_timeout}"]
     path = tmp_path / "probe.yaml"
     path.write_text("\n".join(lines) + "\n")
     return str(path)
@@ -89,8 +91,8 @@ def test_probe_serial_nothing_answers(tmp_path: Path, capsys: pytest.CaptureFixt
     master, slave = os.openpty()
     tty.setraw(slave)
     try:
-        rc = main(["probe", "base", "--config", _config(tmp_path), "--transport", "serial",
-                   "--port", os.ttyname(slave)])
+        rc = main(["probe", "base", "--config", _config(tmp_path, serial_timeout=0.02),
+                   "--transport", "serial", "--port", os.ttyname(slave)])
     finally:
         os.close(master)
         os.close(slave)

@@ -20,7 +20,7 @@ from mmctl.types import Odometry
 PERIOD = 0.002
 
 
-def wait_until(pred: Callable[[], bool], timeout: float = 5.0) -> None:
+def wait_until(pred: Callable[[], bool], timeout: float = 20.0) -> None:
     deadline = time.monotonic() + timeout
     while not pred():
         assert time.monotonic() < deadline, "condition not reached"
@@ -54,7 +54,7 @@ def settle(base: SerialBase, bridge: FakeSerialBridge) -> Odometry:
 @pytest.fixture
 def cfg() -> Config:
     # generous link timeout: a loaded test machine must not look like a dead link
-    return config_from_dict({"base": {"serial": {"link_timeout": 0.5, "timeout": 0.1}}})
+    return config_from_dict({"base": {"serial": {"link_timeout": 5.0, "timeout": 1.0}}})
 
 
 @pytest.fixture
@@ -77,6 +77,7 @@ def test_enable_twist_and_odometry(cfg: Config, bridge: FakeSerialBridge, base: 
     assert [d.state for d in base.drive_status()] == ["OPERATION ENABLED"] * 4
     twist = (0.25, -0.1, 0.5)
     cycles(base, twist, 150)
+    wait_until(lambda: len(bridge.commands()) >= 150)
     want = wheel_matrix(cfg.base.mecanum) @ np.array(twist)
     last = bridge.commands()[-1][1]
     assert np.allclose(last, want, atol=1e-3)  # mrad/s resolution

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mmctl.transports.base import serial_protocol as sp
@@ -25,6 +25,7 @@ def test_documented_example_bytes() -> None:
         "00 02 02 05 03 10 e8 03 01 07 18 fc ff ff f4 01 01 01 01 01 01 03 f1 45 00")
 
 
+@settings(deadline=None)
 @given(st.binary(max_size=1200))
 def test_cobs_round_trip_has_no_zero(data: bytes) -> None:
     enc = sp.cobs_encode(data)
@@ -32,6 +33,7 @@ def test_cobs_round_trip_has_no_zero(data: bytes) -> None:
     assert sp.cobs_decode(enc) == data
 
 
+@settings(deadline=None)
 @given(seqs, types, payloads)
 def test_frame_round_trip(seq: int, msg_type: int, payload: bytes) -> None:
     wire = sp.encode_frame(seq, msg_type, payload)
@@ -41,6 +43,7 @@ def test_frame_round_trip(seq: int, msg_type: int, payload: bytes) -> None:
     assert dec.feed(wire) == [sp.Frame(seq, msg_type, payload)]
 
 
+@settings(deadline=None)
 @given(st.lists(st.tuples(types, payloads), min_size=1, max_size=8), seqs,
        st.integers(1, 64))
 def test_stream_split_anywhere_decodes_in_order(
@@ -55,6 +58,7 @@ def test_stream_split_anywhere_decodes_in_order(
     assert dec.stats.frames == len(msgs) and dec.stats.lost == 0
 
 
+@settings(deadline=None)
 @given(st.tuples(st.integers(0, 2**32 - 1), seqs, st.integers(0, 0xFFFF), st.integers(0, 255)),
        st.lists(st.integers(0, 255), min_size=4, max_size=4),
        st.lists(st.integers(-(2**31), 2**31 - 1), min_size=8, max_size=8))
@@ -64,6 +68,7 @@ def test_state_payload_round_trip(head: tuple[int, int, int, int], ws: list[int]
     assert sp.unpack_state(sp.pack_state(s)) == s
 
 
+@settings(deadline=None)
 @given(st.lists(st.floats(-2000.0, 2000.0, allow_nan=False), min_size=4, max_size=4))
 def test_wheel_cmd_round_trip_to_a_millirad(wheels: list[float]) -> None:
     back = sp.unpack_wheel_cmd(sp.pack_wheel_cmd(wheels))

@@ -23,7 +23,7 @@ import json
 import logging
 import sys
 import time
-from typing import Any
+from typing import Any, TextIO, cast
 
 _STOP_WAIT = 3.0  # longest wait for the wheels to stop after the twist [s]
 
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     from mmctl.runtime.logging import setup_logging
     from mmctl.transports.base import open_base
 
-    setup_logging("warning", stream=_Stderr())  # stdout carries the report only
+    setup_logging("warning", stream=cast(TextIO, _Stderr()))  # stdout carries the report only
     # canopen logs SDO aborts itself; the probe reports them as one line instead
     logging.getLogger("canopen").setLevel(logging.CRITICAL)
     cfg = load_config(args.config) if args.config else default_config()

@@ -125,6 +125,18 @@ class WheelPlant:
             return float(self.pose[0]), float(self.pose[1]), float(self.pose[2])
 
 
+def _maps(pdos: Any) -> list[PdoMap]:
+    """The PDO maps of a node's RPDO or TPDO object."""
+    return list(pdos.map.values())
+
+
+def _read(node: canopen.LocalNode, index: int) -> int:
+    """An integer object of ``node``'s dictionary (through its read callbacks)."""
+    var = node.object_dictionary.get_variable(index)
+    assert var is not None, f"0x{index:04X} is not a variable"
+    return int(var.decode_raw(node.get_data(index, 0)))
+
+
 @dataclass
 class _Drive:
     """One simulated drive's CiA 402 side."""
@@ -167,7 +179,7 @@ class FakeDrives:
         self._network: canopen.Network | None = None
         self._drives: dict[int, _Drive] = {}
         self._sync_count = 0
-        self._sync_time: float | None = None  # while applying RPDOs: the SYNC's time
+        self._sync_time: float | None = None  # while handling a SYNC: its time
         self._error: BaseException | None = None
 
     # -- lifecycle -------------------------------------------------------------------
@@ -187,7 +199,7 @@ class FakeDrives:
             drive = _Drive(wheel, node)
             node.add_read_callback(self._guard(partial(self._on_read, drive)))
             node.add_write_callback(self._guard(partial(self._on_write, drive)))
-            for pdo in node.rpdo.map.values():
+            for pdo in _maps(node.rpdo):
                 pdo.add_callback(self._guard(partial(self._on_rpdo, drive)))
             net.subscribe(0, self._guard(partial(self._on_nmt, drive)))
             self._drives[nid] = drive
@@ -214,7 +226,8 @@ class FakeDrives:
             raise self._error
 
     def __enter__(self) -> Self:
-        return self.start()
+        self.start()
+        return self
 
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None,
@@ -230,7 +243,7 @@ class FakeDrives:
 
     def target_counts(self) -> list[int]:
         """0x60FF of each drive (FL, FR, BL, BR) from its object dictionary [counts/s]."""
-        return [int(d.node.sdo[ds.TARGET_VELOCITY].raw) for d in self._drives.values()]
+        return [_read(d.node, ds.TARGET_VELOCITY) for d in self._drives.values()]
 
     def target_velocities(self) -> Vec:
         """0x60FF of each drive converted to wheel speed (4,) [rad/s]."""
@@ -263,8 +276,8 @@ class FakeDrives:
             for d in self._drives.values():
                 sw = self._statusword(d)
                 link = "SILENT" if d.silent else d.node.nmt.state
-                out.append(DriveStatus(WHEEL_NAMES[d.wheel], d.node.id, link, d.state.value, sw,
-                                       d.error_code))
+                out.append(DriveStatus(WHEEL_NAMES[d.wheel], int(d.node.id or 0), link,
+                                       d.state.value, sw, d.error_code))
             return out
 
     # -- fault injection ----------------------------------------------------------------
@@ -301,7 +314,7 @@ class FakeDrives:
                 return
             d.silent = False
             self._network.subscribe(0x600 + node_id, d.node.sdo.on_request)
-            d.node.nmt.start_heartbeat(int(d.node.sdo[ds.PRODUCER_HEARTBEAT_TIME].raw))
+            d.node.nmt.start_heartbeat(_read(d.node, ds.PRODUCER_HEARTBEAT_TIME))
 
     # -- CAN handlers (run in the network's receive thread) -----------------------------
 
@@ -335,7 +348,8 @@ class FakeDrives:
         if index == ds.STATUSWORD:
             return self._statusword(d)
         if index in (ds.POSITION_ACTUAL, ds.VELOCITY_ACTUAL):
-            self.plant.advance(time.monotonic())
+            if self._sync_time is None:  # an SDO read: now (on SYNC: already advanced)
+                self.plant.advance(time.monotonic())
             if index == ds.POSITION_ACTUAL:
                 counts = round(float(self.plant.theta[d.wheel]) * self._counts_per_rad)
                 return (counts + 2**31) % 2**32 - 2**31
@@ -349,12 +363,14 @@ class FakeDrives:
         return None
 
     def _on_write(self, d: _Drive, index: int, subindex: int, od: Any, data: bytes) -> None:
-        value = od.decode_raw(bytes(data)) if od.fixed_size else None
+        if not od.fixed_size:
+            return
+        value = int(od.decode_raw(bytes(data)))
         now = time.monotonic() if self._sync_time is None else self._sync_time
         with self._lock:
             if index == ds.CONTROLWORD:
-                new = ds.next_state(d.state, int(value), d.controlword)
-                d.controlword = int(value)
+                new = ds.next_state(d.state, value, d.controlword)
+                d.controlword = value
                 if new is not d.state:
                     was_fault = d.state is ds.Cia402State.FAULT
                     self._set_state(d, new)
@@ -365,15 +381,15 @@ class FakeDrives:
             elif index == ds.MODES_OF_OPERATION:
                 if value != ds.MODE_PROFILE_VELOCITY:
                     raise SdoAbortedError(_ABORT_VALUE_RANGE)
-                d.mode = int(value)
+                d.mode = value
             elif index == ds.TARGET_VELOCITY:
-                self.plant.command(d.wheel, int(value) / self._counts_per_rad, now)
+                self.plant.command(d.wheel, value / self._counts_per_rad, now)
             elif index == ds.PROFILE_ACCELERATION:
                 self.plant.advance(now)
-                self.plant.accel[d.wheel] = max(int(value), 1) / self._counts_per_rad
+                self.plant.accel[d.wheel] = max(value, 1) / self._counts_per_rad
             elif index == ds.PROFILE_DECELERATION:
                 self.plant.advance(now)
-                self.plant.decel[d.wheel] = max(int(value), 1) / self._counts_per_rad
+                self.plant.decel[d.wheel] = max(value, 1) / self._counts_per_rad
             elif 0x1400 <= index <= 0x1BFF:
                 d.pdo_dirty = True
 
@@ -411,23 +427,24 @@ class FakeDrives:
             self._sync_count += 1
             now = time.monotonic()
             self.plant.advance(now)
-            self._sync_time = now  # every drive applies its target at the same instant
+            # every drive applies its target and samples its encoder at the SYNC instant
+            self._sync_time = now
             try:
                 for d in self._drives.values():
                     if not d.silent and d.node.nmt.state == "OPERATIONAL":
                         self._apply_rpdos(d)
+                for d in self._drives.values():
+                    if d.silent or d.node.nmt.state != "OPERATIONAL":
+                        continue
+                    for pdo in _maps(d.node.tpdo):
+                        tt = pdo.trans_type
+                        if pdo.enabled and tt is not None and 1 <= tt <= 240 \
+                                and self._sync_count % tt == 0:
+                            self._fill(d, pdo)
+                            pdo.transmit()
+                    self._emit_events(d)
             finally:
                 self._sync_time = None
-            for d in self._drives.values():
-                if d.silent or d.node.nmt.state != "OPERATIONAL":
-                    continue
-                for pdo in d.node.tpdo.map.values():
-                    tt = pdo.trans_type
-                    if pdo.enabled and tt is not None and 1 <= tt <= 240 \
-                            and self._sync_count % tt == 0:
-                        self._fill(d, pdo)
-                        pdo.transmit()
-                self._emit_events(d)
 
     def _fill(self, d: _Drive, pdo: PdoMap) -> None:
         for var in pdo.map:
@@ -437,7 +454,7 @@ class FakeDrives:
         """Send event-driven TPDOs (type 254/255) whose content changed."""
         if d.silent or self._network is None or d.node.nmt.state != "OPERATIONAL":
             return
-        for no, pdo in d.node.tpdo.map.items():
+        for no, pdo in enumerate(_maps(d.node.tpdo)):
             if pdo.enabled and pdo.trans_type is not None and pdo.trans_type >= 254:
                 self._fill(d, pdo)
                 data = bytes(pdo.data)

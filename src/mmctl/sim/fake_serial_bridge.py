@@ -121,7 +121,8 @@ class FakeSerialBridge:
             raise self._error
 
     def __enter__(self) -> Self:
-        return self.start()
+        self.start()
+        return self
 
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None,
@@ -282,7 +283,8 @@ class FakeSerialBridge:
         with self._lock:
             if self._pending["out_of_sequence"]:
                 self._pending["out_of_sequence"] -= 1
-                bogus = state._replace(position=tuple(p + 10**6 for p in state.position))
+                a, b, c, d = (p + 10**6 for p in state.position)  # 1 rad off: must not count
+                bogus = state._replace(position=(a, b, c, d))
                 old = (self._seq - 3) & 0xFFFF
                 self._write(sp.encode_frame(old, sp.MsgType.STATE, sp.pack_state(bogus)))
         self._send(sp.MsgType.STATE, sp.pack_state(state))

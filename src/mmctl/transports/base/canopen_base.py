@@ -150,7 +150,7 @@ class CanopenBase:
                 node.nmt.state = "OPERATIONAL"
             self._wait_operational()
             self._hb_task = net.send_periodic(
-                0x700 + co.master_node_id, [_OPERATIONAL], co.heartbeat_period)
+                0x700 + co.master_node_id, bytes([_OPERATIONAL]), co.heartbeat_period)
         except BaseException:
             self._teardown()
             raise
@@ -368,8 +368,8 @@ class CanopenBase:
     def _on_tpdo1(self, i: int, pdo: PdoMap) -> None:
         """Collect one SYNC's four samples; publish them together once all arrived (so
         odometry never integrates a half-updated set)."""
-        self._rx_pos[i] = pdo.map[0].raw
-        self._rx_vel[i] = pdo.map[1].raw
+        self._rx_pos[i] = int(pdo.map[0].raw)
+        self._rx_vel[i] = int(pdo.map[1].raw)
         self._rx_mask |= 1 << i
         if self._rx_mask == self._all_mask:
             self._rx_mask = 0
@@ -379,7 +379,7 @@ class CanopenBase:
                 self._sample_time = time.monotonic()
 
     def _on_tpdo2(self, i: int, pdo: PdoMap) -> None:
-        self._statusword[i] = pdo.map[0].raw
+        self._statusword[i] = int(pdo.map[0].raw)
 
     def _probe_one(self, i: int) -> None:
         dtype = self._nodes[i].sdo[ds.DEVICE_TYPE].raw
