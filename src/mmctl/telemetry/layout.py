@@ -103,7 +103,7 @@ def blueprint(history_s: float = 20.0) -> Any:
                                   time_ranges=window,
                                   plot_legend=rrb.PlotLegend("LeftTop", visible=True))
 
-    camera = rrb.EyeControls3D(position=(-2.6, -2.4, 2.2), look_target=(0.4, 0.0, 0.6),
+    camera = rrb.EyeControls3D(position=(-1.7, -1.6, 1.6), look_target=(0.4, 0.0, 0.7),
                                eye_up=(0.0, 0.0, 1.0), tracking_entity=f"/{BASE}")
     left = rrb.Vertical(
         rrb.Spatial3DView(name="Robot (follows the base)", origin=f"/{WORLD}",
