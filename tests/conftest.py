@@ -1,16 +1,32 @@
-"""Shared fixtures.
+"""Shared fixtures and test-wide settings.
 
-``loopback_host`` hands every test its own 127.0.0.x address so servers on the fixed
-UR ports (29999, 30003, 30004) of parallel tests never collide.
+``loopback_host`` hands every test its own 127.x.y.z address so servers on the fixed
+UR ports (29999, 30003, 30004) of parallel tests never collide; an address whose
+ports are already taken (another test run on the same machine) is skipped.
+
+Hypothesis runs without deadlines or the too-slow health check: CI machines have two
+shared cores, and speed is measured by benchmarks, never asserted in tests.
 """
 
 from __future__ import annotations
 
 import itertools
 import os
+import socket
+from collections.abc import Iterator
 
 import pytest
+import structlog
+from hypothesis import HealthCheck, settings
 
+settings.register_profile(
+    "mmctl",
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
+)
+settings.load_profile("mmctl")
+
+_UR_PORTS = (29999, 30003, 30004)
 _counter = itertools.count()
 
 
@@ -20,8 +36,35 @@ def _worker_index() -> int:
     return int(digits or 0)
 
 
+def _ports_free(host: str) -> bool:
+    for port in _UR_PORTS:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((host, port))
+            except OSError:
+                return False
+    return True
+
+
 @pytest.fixture
 def loopback_host() -> str:
-    """A loopback address unique to this test: 127.<10+worker>.<a>.<b>."""
-    n = next(_counter)
-    return f"127.{10 + _worker_index()}.{n // 250}.{n % 250 + 2}"
+    """A loopback address unique to this test whose UR ports are free.
+
+    127.<10 + xdist worker>.<pid-derived>.<counter>: distinct per worker and per test
+    process, so concurrent pytest runs on one machine do not collide either.
+    """
+    block = os.getpid() % 200
+    for _ in range(1000):
+        n = next(_counter)
+        host = f"127.{10 + _worker_index()}.{(block + n // 250) % 250}.{n % 250 + 2}"
+        if _ports_free(host):
+            return host
+    raise RuntimeError("no loopback address with free UR ports")
+
+
+@pytest.fixture(autouse=True)
+def _reset_structlog() -> Iterator[None]:
+    """Undo any structlog configuration a test (e.g. the daemon's set-up) made."""
+    yield
+    structlog.reset_defaults()
