@@ -32,7 +32,7 @@ class SafetyConfig:
     """Fault thresholds not owned by a device section."""
 
     max_condition: float = param(
-        1e4, gt=1.0, doc="condition number of J M^-1 J^T above which the pose is 'singular'"
+        1e4, gt=1.0, doc="condition number of the whole-body J J^T above which the pose is 'singular'"
     )
 
 
