@@ -25,13 +25,27 @@ shape this module:
   controller that accepts but never streams: :meth:`UrRtdeArm.connect` first checks
   the dashboard and RTDE ports with plain sockets and a timeout;
 * each interface's destructor sleeps 0.5 s with the GIL held: ``close()`` costs ~1 s;
+* a write that fails inside speedJ makes ur_rtde reconnect synchronously; when that
+  fails too, speedJ raises (reported here as ARM_DISCONNECTED).  If the controller
+  resets the connection (its process died, the host is up), that synchronous reconnect
+  can race the receive thread's own and crash the process (seen once in ~15
+  killed-controller test runs): a ur_rtde 1.6.5 bug that only isolating the link in its own
+  process (or patching ur_rtde) removes;
 * after a silent stream of more than 2.5 s ``RTDEControlInterface`` reconnects by
-  itself from its receive thread; that path can hang or crash (seen: a segfault), so
-  the daemon must treat ARM_STALE as a fault and reconnect only once data flows again.
+  itself from its receive thread and, if the controller still streams nothing, waits
+  forever for a first sample (seen too: a segfault in that path); destroying it then
+  hangs.  ``close()`` therefore checks a link that is not fresh with a plain-socket
+  RTDE probe, and if the controller answers but streams nothing it *parks* both
+  interfaces (keeps them alive for good, threads included) instead of destroying them.
+  If such a silence lasts beyond 2.5 s, ur_rtde's self-reconnect still runs (parked
+  or not) and, when the controller comes back, has crashed the process in our tests
+  (segfault): with ur_rtde 1.6.5 a frozen stream longer than 2.5 s is not survivable
+  for sure.  The daemon must treat ARM_STALE as a fault at once.
 """
 
 from __future__ import annotations
 
+import ctypes
 import math
 import re
 import socket
@@ -165,6 +179,13 @@ class UrRtdeArm:
                 if not self._ctrl.speedStop(self.config.stop_deceleration):
                     log.warning("arm_speed_stop_refused", host=self.host)
                 self._ctrl.stopScript()
+            elif self._stream_silent():
+                for interface in (self._ctrl, self._recv):
+                    if interface is not None:
+                        _park(interface)
+                log.warning("arm_interfaces_parked", host=self.host,
+                            why="the controller accepts RTDE clients but streams nothing; "
+                            "destroying ur_rtde's interfaces now would block or hang")
         except RuntimeError as exc:
             log.warning("arm_close_stop_failed", host=self.host, why=str(exc))
         finally:
@@ -269,6 +290,17 @@ class UrRtdeArm:
 
     # -- internals -----------------------------------------------------------------------
 
+    def _stream_silent(self) -> bool:
+        """The controller answers on the RTDE port but sends no data (a frozen stream)."""
+        try:
+            _rtde_first_sample(self.config.host, self.config.frequency,
+                               min(self.config.connect_timeout, 0.5))
+        except SilentStreamError:
+            return True
+        except TransportError:
+            return False
+        return False
+
     def _fresh(self) -> bool:
         """The newest read_state was healthy and brought a new sample."""
         return (self._healthy and self._stale == 0 and self._ctrl is not None
@@ -326,9 +358,14 @@ _HEADER = struct.Struct(">HB")
 _FIRST = struct.Struct(">BdII")  # recipe id, timestamp, runtime_state, safety_status_bits
 
 
+class SilentStreamError(TransportError):
+    """The RTDE port accepts a client and starts it, but no data package follows."""
+
+
 def _rtde_first_sample(host: str, frequency: float, timeout: float) -> tuple[float, int, int]:
     """Ask the RTDE port for one package of (timestamp, runtime_state, safety bits)."""
     deadline = time.monotonic() + timeout
+    started = False
     try:
         with socket.create_connection((host, RTDE_PORT), timeout=timeout) as s:
             s.settimeout(timeout)
@@ -338,14 +375,31 @@ def _rtde_first_sample(host: str, frequency: float, timeout: float) -> tuple[flo
             if b"NOT_FOUND" in reply or not reply or reply[0] == 0:
                 raise TransportError(f"{host}:{RTDE_PORT} refused the output recipe: {reply!r}")
             _rtde_request(s, b"S", b"", deadline)
+            started = True
             while True:
                 kind, body = _rtde_receive(s, deadline)
                 if kind == ord("U") and len(body) == _FIRST.size:
                     _, t, runtime, bits = _FIRST.unpack(body)
                     return t, runtime, bits
     except OSError as exc:
+        if started:
+            raise SilentStreamError(f"{host}:{RTDE_PORT} (RTDE) accepts clients but sends no "
+                                    f"data: {_reason(exc)}") from None
         raise TransportError(f"nothing answers at {host}:{RTDE_PORT} (RTDE): "
                              f"{_reason(exc)}") from None
+
+
+_PARKED: list[Any] = []
+
+
+def _park(interface: Any) -> None:
+    """Keep a ur_rtde interface alive for good.  Its destructor would join a receive
+    thread blocked up to 2.5 s in a read (receive interface) or stuck in ur_rtde's own
+    reconnect, which waits without a timeout for a first sample from a controller that
+    streams nothing (control interface), hanging the process with the GIL held.  The
+    extra reference makes sure it is not finalised at interpreter exit either."""
+    _PARKED.append(interface)
+    ctypes.pythonapi.Py_IncRef(ctypes.py_object(interface))
 
 
 def _rtde_request(s: socket.socket, kind: bytes, payload: bytes, deadline: float) -> bytes:
