@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import random
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -96,3 +97,25 @@ def test_probe_safety_stop(fake: FakeURController, capsys: pytest.CaptureFixture
     err = _fails(["probe", "arm", "--host", fake.host, "--jog-joint", "0"], capsys)
     assert f"the arm is in {words}" in err
     assert fake.commands(CommandKind.SPEEDJ) == []
+
+
+def test_mmctl_fake_ur_serves_the_probe(config: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """`mmctl fake-ur` in the foreground of its own process, probed by `mmctl probe arm`."""
+    for _ in range(5):
+        host = f"127.{random.randint(100, 254)}.{random.randint(0, 255)}.{random.randint(2, 254)}"
+        proc = subprocess.Popen([str(MMCTL), "fake-ur", "--host", host, "--q-init", *map(str, Q0)],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        assert proc.stdout is not None
+        banner = proc.stdout.readline()
+        listening = proc.stdout.readline()
+        if "fake_ur_listening" in listening:
+            break
+        proc.wait(30)  # address taken by someone else: try another
+    try:
+        assert banner.startswith(f"fake UR controller on {host}: dashboard 29999")
+        assert main(["probe", "arm", "--host", host, "--config", config, "--json"]) == 0
+        report = json.loads(capsys.readouterr().out)
+        assert report["q_start"] == pytest.approx(Q0) and report["runtime_state"] == 2
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 130
