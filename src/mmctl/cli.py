@@ -37,6 +37,7 @@ COMMANDS: list[tuple[str, str, str]] = [
 GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
     "bench": ("benchmarks that print figures", [
         ("idk", "mmctl.commands.bench_idk", "time the IDK strategies vs the paper's explicit inverse"),
+        ("loop", "mmctl.commands.bench_loop", "500 Hz loop timing vs a time.sleep loop"),
     ]),
     "probe": ("bring-up probes for one device", [
         ("sensor", "mmctl.commands.probe_sensor", "read the force/torque sensor, print the wrench"),

@@ -21,6 +21,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", choices=("debug", "info", "warning", "error"),
                    help="override daemon.log_level")
     p.add_argument("--log-json", action="store_true", help="JSON log lines even on a TTY")
+    p.add_argument("--viewer", action="store_true", help="telemetry: spawn a local rerun viewer")
+    p.add_argument("--connect", metavar="ADDR",
+                   help="telemetry: stream to a running rerun viewer (HOST:PORT or URL)")
+    p.add_argument("--record", metavar="FILE", help="telemetry: save a .rrd recording")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -34,5 +38,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = load(args.config)
     setup_logging(args.log_level or cfg.daemon.log_level, json=True if args.log_json else None)
     socket_path = Path(args.socket) if args.socket else resolve_socket_path(cfg.daemon.socket_path)
-    daemon = create_daemon(cfg, socket_path, sim_log=Path(args.sim_log) if args.sim_log else None)
+    from mmctl.telemetry.service import TelemetryService, destinations_from
+
+    telemetry = TelemetryService(cfg, destinations_from(cfg, viewer=args.viewer,
+                                                        connect=args.connect, record=args.record))
+    daemon = create_daemon(cfg, socket_path, sim_log=Path(args.sim_log) if args.sim_log else None,
+                           telemetry=telemetry)
     return daemon.run(duration=args.duration)

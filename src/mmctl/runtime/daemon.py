@@ -52,6 +52,8 @@ SampleHook = Callable[[Any], None]
 
 _BASE_CAUSES = frozenset({FaultCause.DRIVE_FAULT, FaultCause.DRIVE_HEARTBEAT,
                           FaultCause.BASE_LINK})
+_ARM_RECONNECT_CAUSES = frozenset({FaultCause.ARM_DISCONNECTED, FaultCause.ARM_STALE,
+                                   FaultCause.ARM_NOT_PLAYING})
 _LINK_CAUSE = {"arm": FaultCause.ARM_DISCONNECTED, "sensor": FaultCause.SENSOR_LINK,
                "base": FaultCause.BASE_LINK}
 
@@ -63,19 +65,25 @@ class Daemon:
     socket_path: where to serve the control socket (None = no socket, for in-process
     tests); notifier: systemd notify (default: from the environment); sim: the
     simulated world when running without hardware (anything with ``status()``,
-    ``start_human()``, ``command(req)`` and ``close()``), or None.
+    ``start_human()``, ``command(req)`` and ``close()``), or None; telemetry: a
+    :class:`~mmctl.telemetry.service.TelemetryService` (its hook becomes
+    :attr:`sample_hook`, ``trial`` requests go to it), or None.
     """
 
     def __init__(self, cfg: Config, devices: Devices, core: ControlCore, *,
                  socket_path: Path | None = None, notifier: Notifier | None = None,
-                 sim: Any = None):
+                 sim: Any = None, telemetry: Any = None):
         self.cfg = cfg
         self.devices = devices
         self.core = core
         self.safety = SafetyMonitor()
         self.notifier = notifier if notifier is not None else Notifier()
         self.sim = sim
+        self.telemetry = telemetry
         self.ring = TimingRing(cfg.loop.timing_samples)
+        #: time spent in the pure control chain (ControlCore.step) per cycle, indexed by
+        #: cycle % size [ns]: the part of the compute time that is not device I/O
+        self.step_ns = np.zeros(cfg.loop.timing_samples, np.int64)
         self.loop = CycleLoop(
             self.cycle, rate_hz=cfg.loop.rate_hz, spin_margin=cfg.loop.spin_margin,
             max_consecutive_misses=cfg.loop.max_consecutive_misses,
@@ -122,6 +130,9 @@ class Daemon:
         """Start the loop and the control socket."""
         sys.setswitchinterval(self.cfg.loop.switch_interval)
         self._t0_ns = time.perf_counter_ns()
+        if self.telemetry is not None:
+            self.telemetry.start(ring=self.ring, origin_ns=self._t0_ns)
+            self.sample_hook = self.telemetry.hook()
         self.loop.start()
         if self.server is not None:
             self.server.start()
@@ -171,6 +182,8 @@ class Daemon:
                 self.safety.disable()
         if self.server is not None:
             self.server.close()
+        if self.telemetry is not None:
+            self.telemetry.close()
         self.devices.close()
         if self.sim is not None:
             self.sim.close()
@@ -251,12 +264,16 @@ class Daemon:
         if cmd == "stop":
             self.request_stop("mmctl stop")
             return {"stopping": True}
+        if cmd == "trial":
+            if self.telemetry is None:
+                raise MmctlError("'trial' needs the telemetry service")
+            return self.telemetry.command(req, self._on_loop, self)
         if cmd == "sim":
             if self.sim is None:
                 raise MmctlError("'sim' commands need the simulated robot (sim.enabled)")
             return self.sim.command(req)
         raise MmctlError(f"unknown command {cmd!r}; known: status, enable, disable, mode, "
-                         "switch, tare, stop, sim")
+                         "switch, tare, stop, trial, sim")
 
     def _enable(self) -> dict[str, Any]:
         """Operator re-arm (loop thread).
@@ -269,9 +286,14 @@ class Daemon:
             return self.status()
         if self.cycles == 0:
             raise MmctlError("refused to enable: no control cycle has run yet")
+        if self.core.taring:
+            raise MmctlError("refused to enable: a tare is in progress (the handle must not "
+                             "be touched until it ends)")
         other = {c: d for c, d in self.safety.active.items() if c not in _BASE_CAUSES}
         if self.loop.consecutive_misses == 0:
             other.pop(FaultCause.LOOP_OVERRUN, None)  # on time again; counters reset below
+        if other.keys() & _ARM_RECONNECT_CAUSES:
+            other = self._reconnect_arm(other)
         if other:
             self.safety.enable(other)  # raises EnableRefused naming them
         try:
@@ -282,6 +304,13 @@ class Daemon:
             self.safety.enable({exc.cause: {"device": "base", **exc.details}})  # refused
         except (MmctlError, OSError) as exc:
             self.devices.stop(self.cfg.arm.stop_deceleration)
+            try:
+                self.devices.base.check()  # name the cause if the base knows it
+            except SafetyFault as fault:
+                self.safety.enable({fault.cause: {"device": "base", "error": str(exc),
+                                                  **fault.details}})  # refused
+            except (MmctlError, OSError):
+                pass
             raise MmctlError(f"refused to enable: the base did not enable ({exc})") from None
         self.safety.enable({})
         self._base_enabled = True
@@ -289,6 +318,22 @@ class Daemon:
         self.loop.reset_misses()
         self._update_status()
         return self.status()
+
+    def _reconnect_arm(self, conditions: dict[FaultCause, dict[str, Any]]
+                       ) -> dict[FaultCause, dict[str, Any]]:
+        """Enable after a lost link / stopped program: reconnect the arm (re-uploads the
+        control script; blocks ~1-2 s while disarmed) and re-judge it with a fresh read."""
+        log.info("arm_reconnecting", causes=sorted(c.value for c in conditions))
+        try:
+            self.devices.arm.reconnect()
+        except (MmctlError, OSError) as exc:
+            raise MmctlError(f"refused to enable: the arm did not reconnect ({exc})") from None
+        left = {c: d for c, d in conditions.items() if not c.value.startswith("arm_")}
+        try:
+            self.devices.arm.read_state()
+        except SafetyFault as exc:
+            left[exc.cause] = {"device": "arm", **exc.details}
+        return left
 
     def _disable(self) -> dict[str, Any]:
         if self.safety.disable():
@@ -375,7 +420,9 @@ class Daemon:
         self._poll_button()
         result: CycleResult | None = None
         if arm is not None and wrench is not None and odom is not None:
+            t0 = time.perf_counter_ns()
             result = self.core.step(arm, wrench, odom, tick.period, active=self.safety.armed)
+            self.step_ns[self.cycles % self.step_ns.shape[0]] = time.perf_counter_ns() - t0
             if result.fault is not None:
                 conditions.setdefault(result.fault, dict(result.fault_details))
             self.last = result
@@ -384,7 +431,7 @@ class Daemon:
         if stop_now:
             self._send_stop()
         elif self.safety.armed and result is not None:
-            self._send_motion(result)
+            self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
         if not conditions and dev.connected:
             self._healthy_cycle.set()
         if self.sample_hook is not None and result is not None:
@@ -394,22 +441,30 @@ class Daemon:
         if stop_now:
             self._update_status()
 
-    def _send_motion(self, r: CycleResult) -> None:
+    def _send_motion(self, r: CycleResult, base: bool = True) -> None:
+        """speedJ, then (every ``loop.base_divider``-th cycle: ``base``) the base twist
+        (``send_twist`` re-checks the drives and sends zero itself when they fail; the
+        cycle then stops the arm too, before it ends).
+
+        speedJ goes first: the base's RPDOs + SYNC wake the CANopen threads, and a
+        ur_rtde call made while they run waits for the GIL."""
         dev = self.devices
         try:
             dev.arm.speed_j(r.qd_arm, self.cfg.arm.speedj_acceleration, self.period)
             self.commands_sent["speed_j"] += 1
         except (SafetyFault, TransportError) as exc:
             cause = getattr(exc, "cause", FaultCause.ARM_DISCONNECTED)
-            if self.safety.trip(cause, device="arm", error=str(exc)):
+            if self.safety.trip(cause, device="arm", **getattr(exc, "details", {})):
                 self._send_stop()
+            return
+        if not base:
             return
         try:
             dev.base.send_twist(float(r.twist[0]), float(r.twist[1]), float(r.twist[2]))
             self.commands_sent["twist"] += 1
         except (SafetyFault, TransportError) as exc:
             cause = getattr(exc, "cause", FaultCause.BASE_LINK)
-            if self.safety.trip(cause, device="base", error=str(exc)):
+            if self.safety.trip(cause, device="base", **getattr(exc, "details", {})):
                 self._send_stop()
 
     def _send_stop(self) -> None:
@@ -449,6 +504,7 @@ class Daemon:
             **self.safety.as_dict(),
             "mode": self.core.mode,
             "switch": self.core.switch,
+            "taring": self.core.taring,
             "cycles": self.cycles,
             "uptime_s": round(time.monotonic() - self._started, 3),
             "loop": {"rate_hz": self.cfg.loop.rate_hz, "running": self.loop.running,
@@ -463,6 +519,8 @@ class Daemon:
                             "energy_J": round(float(last.energy.total), 6)}
         if self.sim is not None:
             out["sim"] = self.sim.status()
+        if self.telemetry is not None:
+            out["telemetry"] = self.telemetry.status()
         return out
 
 

@@ -74,14 +74,16 @@ class Devices:
             raise
 
     def stop(self, arm_deceleration: float, disable_base: bool = True) -> list[str]:
-        """speedStop the arm and zero the base (then disable it); every step is tried.
+        """Zero the base, speedStop the arm, then disable the base; every step is tried.
 
-        Returns the names of the steps that failed (each logged); never raises.
+        The base's zero target (RPDOs + SYNC) goes first: it never waits, while the
+        arm's speedStop waits for the controller's handshake.  Returns the names of the
+        steps that failed (each logged); never raises.
         """
         failed: list[str] = []
         steps: list[tuple[str, Callable[[], None]]] = [
-            ("arm.stop", lambda: self.arm.stop(arm_deceleration)),
             ("base.stop", self.base.stop),
+            ("arm.stop", lambda: self.arm.stop(arm_deceleration)),
         ]
         if disable_base:
             steps.append(("base.disable", self.base.disable))
@@ -110,7 +112,7 @@ def open_devices(cfg: Config, button: Button | None = None) -> Devices:
     from mmctl.transports.sensor import open_sensor
     from mmctl.transports.ur_rtde_arm import UrRtdeArm
 
-    arm = UrRtdeArm(cfg.arm)
+    arm = UrRtdeArm.from_config(cfg)
     if button is None and cfg.daemon.switch_input >= 0:
         button = ArmDigitalInput(arm, cfg.daemon.switch_input)
     return Devices(arm=arm, sensor=open_sensor(cfg.sensor), base=open_base(cfg),

@@ -8,6 +8,7 @@ transports either way.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from mmctl.config import Config
 from mmctl.runtime.core import ControlCore
@@ -17,8 +18,12 @@ from mmctl.runtime.notify import Notifier
 
 
 def create_daemon(cfg: Config, socket_path: Path | None, *, sim_log: Path | None = None,
-                  notifier: Notifier | None = None) -> Daemon:
-    """The daemon for ``cfg`` (nothing started or connected yet)."""
+                  notifier: Notifier | None = None, telemetry: Any = None) -> Daemon:
+    """The daemon for ``cfg`` (nothing started or connected yet).
+
+    telemetry: a :class:`~mmctl.telemetry.service.TelemetryService`; default: one built
+    from ``cfg.telemetry`` (publishing nothing unless a destination is configured).
+    """
     sim = None
     button = None
     if cfg.sim.enabled:
@@ -28,4 +33,9 @@ def create_daemon(cfg: Config, socket_path: Path | None, *, sim_log: Path | None
         button = sim.button
     devices = open_devices(cfg, button=button)
     core = ControlCore(cfg)
-    return Daemon(cfg, devices, core, socket_path=socket_path, notifier=notifier, sim=sim)
+    if telemetry is None:
+        from mmctl.telemetry.service import TelemetryService, destinations_from
+
+        telemetry = TelemetryService(cfg, destinations_from(cfg))
+    return Daemon(cfg, devices, core, socket_path=socket_path, notifier=notifier, sim=sim,
+                  telemetry=telemetry)

@@ -45,7 +45,7 @@ FAULTS = {
     "sensor_silent": "the CAN sensor stops answering",
     "sensor_status": "the sensor's status word reports a bus error",
     "sensor_saturation": "the sensor reports gauge saturation",
-    "wrench_over_limit": "the person pushes with 300 N",
+    "wrench_over_limit": "the person pushes 200 N along the handle's axis (no torque)",
     "arm_protective_stop": "the UR goes into protective stop",
     "arm_emergency_stop": "the UR's emergency stop is pressed",
     "arm_not_playing": "the UR program is stopped (pendant stop)",
@@ -55,6 +55,12 @@ FAULTS = {
     "drive_silent": "drive 1 (FL) stops its heartbeat",
 }
 _HUMAN_PERIOD = 0.01  # [s] the person's update period (100 Hz: slow next to a hand)
+
+
+def _cross(a: Vec, b: Vec) -> Vec:
+    """a x b for 3-vectors (np.cross costs ~20 us of bookkeeping)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
 
 
 class SimWorld:
@@ -106,7 +112,10 @@ class SimWorld:
         from mmctl.sim.fake_ur import FakeURController
 
         cfg = self.cfg
+        from mmctl.control.mecanum import odometry_matrix
+
         self.model = RobotModel(cfg.robot)
+        self._odometry = odometry_matrix(cfg.base.mecanum)
         self._lever = np.subtract(cfg.robot.tool_offset, cfg.robot.sensor_offset)
         w = cfg.sensor.wrench
         self._mass, self._com = w.handle_mass, np.asarray(w.handle_com, dtype=float)
@@ -175,20 +184,20 @@ class SimWorld:
             self.error = exc
             log.exception("sim_human_failed", error=repr(exc))
 
-    def _observe(self) -> tuple[Vec, Vec, Vec, Vec]:
-        """True q (9,), qd (9,), handle position and velocity in the world [m, m/s]."""
-        from mmctl.control.mecanum import odometry_matrix
-
+    def _observe(self) -> tuple[Vec, Vec, Vec, Vec, Vec]:
+        """True q (9,), qd (9,), handle position and velocity in the world [m, m/s] and
+        the sensor's orientation in the base frame (3, 3) (the model's sensor and tool
+        frames are the flange's axes moved along them: same rotation as the tool)."""
         arm = self.ur.state()
         x, y, yaw = self.drives.pose()
-        twist = odometry_matrix(self.cfg.base.mecanum) @ self.drives.wheel_velocities()
+        twist = self._odometry @ self.drives.wheel_velocities()
         q = np.concatenate((arm.q, [x, y, yaw]))
         qd = np.concatenate((arm.qd, twist))
         kin = self.model.update(q, inertia=False)
         c, s = math.cos(yaw), math.sin(yaw)
         v_b = kin.J[:3] @ qd
         v_w = np.array([c * v_b[0] - s * v_b[1], s * v_b[0] + c * v_b[1], v_b[2]])
-        return q, qd, kin.p, v_w
+        return q, qd, kin.p, v_w, kin.R_base
 
     def _human_force(self, t: float, q: Vec, p: Vec, v: Vec) -> Vec:
         from mmctl.sim.human import HandleObservation
@@ -215,7 +224,7 @@ class SimWorld:
 
     def _update(self) -> None:
         t = time.monotonic()
-        q, _qd, p, v = self._observe()
+        q, _qd, p, v, r_bs = self._observe()
         force = np.zeros(3)
         with self._lock:
             push = self.push if t < self._push_until else None
@@ -224,25 +233,28 @@ class SimWorld:
             force = push.copy()
         elif self.human_on:
             force = self._human_force(t, q, p, v)
-        if "wrench_over_limit" in faults:
-            force = np.array([300.0, 0.0, 0.0])
+        if "wrench_over_limit" in faults:  # along the tool axis: above the force limit,
+            c, s = math.cos(q[8]), math.sin(q[8])  # not saturating the torque gauges
+            axis_b = r_bs[:, 2]
+            force = 200.0 * np.array([c * axis_b[0] - s * axis_b[1],
+                                      s * axis_b[0] + c * axis_b[1], axis_b[2]])
         self.button.state = t < self._press_until
-        self._wrench = self._sensor_wrench(q, force)
+        self._wrench = self._sensor_wrench(q, r_bs, force)
         self._last_force = force
         self._handle = p
         self.updates += 1
 
-    def _sensor_wrench(self, q: Vec, force_world: Vec) -> Vec:
+    def _sensor_wrench(self, q: Vec, r_bs: Vec, force_world: Vec) -> Vec:
         """World force at the handle -> what the sensor measures (sensor frame)."""
         yaw = q[8]
         c, s = math.cos(yaw), math.sin(yaw)
         f_b = np.array([c * force_world[0] + s * force_world[1],
                         -s * force_world[0] + c * force_world[1], force_world[2]])
-        r_bs = self.model.fk_base(q, "sensor").rotation
         f_s = r_bs.T @ f_b
-        t_s = np.cross(self._lever, f_s)
         g_s = r_bs.T @ np.array([0.0, 0.0, -self._mass * G0])
-        out = np.concatenate((f_s + g_s, t_s + np.cross(self._com, g_s)))
+        out = np.empty(6)
+        out[:3] = f_s + g_s
+        out[3:] = _cross(self._lever, f_s) + _cross(self._com, g_s)
         return out + SENSOR_BIAS
 
     # -- control-socket commands ----------------------------------------------------------

@@ -1,0 +1,241 @@
+"""`mmctl run` as a real subprocess on the simulated robot, driven through the socket/CLI.
+
+The daemon gets its own socket in tmp_path, its own fake-UR loopback address and its own
+virtual CAN channel names; ``NOTIFY_SOCKET`` points at a datagram socket the test binds,
+so the systemd notify protocol is observed as systemd would see it.  The fakes run under
+the daemon (``--sim-log`` makes it write their command logs on shutdown).  The tests in
+this module share one daemon and run in order; the last one stops it with SIGTERM.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import stat
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from mmctl.cli import main
+from mmctl.errors import IpcError
+from mmctl.runtime.ipc import ControlClient, request
+
+pytestmark = pytest.mark.timeout(900)
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclass
+class Proc:
+    proc: subprocess.Popen[bytes]
+    socket: Path
+    config: Path
+    sim_log: Path
+    out: Path
+    notify: socket.socket
+    messages: list[str] = field(default_factory=list)
+
+    def call(self, cmd: str, **args: Any) -> Any:
+        return request(self.socket, cmd, timeout=60.0, **args)
+
+    def status(self) -> dict[str, Any]:
+        return self.call("status")
+
+    def drain_notify(self) -> list[str]:
+        while True:
+            try:
+                self.messages.extend(self.notify.recv(4096).decode().split("\n"))
+            except BlockingIOError:
+                return self.messages
+
+    def log_text(self) -> str:
+        return self.out.read_text(errors="replace")
+
+
+def wait_for(pred: Callable[[], Any], what: str, proc: Proc | None = None,
+             timeout: float = 120.0) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = pred()
+        if value:
+            return value
+        if proc is not None and proc.proc.poll() is not None:
+            raise AssertionError(f"daemon exited ({proc.proc.returncode}) while waiting for "
+                                 f"{what}:\n{proc.log_text()[-4000:]}")
+        time.sleep(0.05)
+    tail = proc.log_text()[-4000:] if proc is not None else ""
+    raise AssertionError(f"timed out waiting for {what}\n{tail}")
+
+
+def write_config(tmp: Path, host: str) -> Path:
+    base = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
+    tag = f"{os.getpid()}-{host.replace('.', '-')}"
+    base["name"] = "cli-test"
+    base["arm"]["host"] = host
+    base["sensor"]["can"]["channel"] = f"cli-s-{tag}"
+    base["base"]["canopen"]["channel"] = f"cli-b-{tag}"
+    base["sim"].update({"human": False, "auto_enable": False})
+    base["daemon"] = {"socket_path": str(tmp / "run" / "mmctl.sock")}
+    path = tmp / "daemon.yaml"
+    path.write_text(yaml.safe_dump(base))
+    return path
+
+
+def spawn(cfg: Path, out: Path, env: dict[str, str], *extra: str) -> subprocess.Popen[bytes]:
+    with out.open("ab") as f:
+        return subprocess.Popen(
+            [sys.executable, "-m", "mmctl.cli", "run", "--config", str(cfg), *extra],
+            stdout=f, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Proc]:
+    tmp = tmp_path_factory.mktemp("daemon")
+    digits = "".join(ch for ch in os.environ.get("PYTEST_XDIST_WORKER", "gw0") if ch.isdigit())
+    host = f"127.{10 + int(digits or 0)}.202.2"
+    cfg = write_config(tmp, host)
+    notify_path = tmp / "notify.sock"
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(notify_path))
+    notify.setblocking(False)
+    env = {**os.environ, "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": "1000000",
+           "PYTHONUNBUFFERED": "1"}
+    env.pop("WATCHDOG_PID", None)
+    out = tmp / "daemon.log"
+    sim_log = tmp / "simlog"
+    p = Proc(spawn(cfg, out, env, "--sim-log", str(sim_log), "--log-json"),
+             Path(yaml.safe_load(cfg.read_text())["daemon"]["socket_path"]), cfg, sim_log,
+             out, notify)
+    try:
+        wait_for(lambda: "READY=1" in p.drain_notify(), "READY=1", p, timeout=180.0)
+        yield p
+    finally:
+        if p.proc.poll() is None:
+            p.proc.kill()
+            p.proc.wait(30)
+        notify.close()
+
+
+def test_ready_then_watchdog_and_status_over_the_socket(daemon: Proc) -> None:
+    msgs = daemon.drain_notify()
+    assert any(m.startswith("STATUS=state=disarmed") for m in msgs), msgs
+    wait_for(lambda: "WATCHDOG=1" in daemon.drain_notify(), "WATCHDOG=1", daemon)
+    st = daemon.status()
+    assert st["state"] == "disarmed" and st["mode"] == "min-energy" and st["fault"] is None
+    assert st["cycles"] > 0 and st["loop"]["running"]
+    assert st["config"] == "cli-test"
+    assert stat.S_IMODE(daemon.socket.stat().st_mode) == 0o660
+
+
+def test_cli_status_and_errors(daemon: Proc, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["status", "--socket", str(daemon.socket)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("state=disarmed mode=min-energy")
+    assert main(["status", "--json", "--config", str(daemon.config)]) == 0
+    assert json.loads(capsys.readouterr().out)["state"] == "disarmed"
+    assert main(["switch", "locomotion", "--socket", str(daemon.socket)]) == 2
+    assert "needs mode 'switch'" in capsys.readouterr().err
+
+
+def test_malformed_and_unknown_requests_get_errors(daemon: Proc) -> None:
+    with ControlClient(daemon.socket, timeout=60.0) as c:
+        assert c.raw(b"{oops")["error"].startswith("malformed request")
+        assert "unknown command 'explode'" in c.raw(b'{"cmd": "explode"}')["error"]
+        assert "needs 'mode'" in c.raw(b'{"cmd": "mode"}')["error"]
+        assert "unknown mode 'fastest'" in c.raw(b'{"cmd": "mode", "mode": "fastest"}')["error"]
+        assert c.call("status")["state"] == "disarmed"  # carries on, same connection
+
+
+def test_second_daemon_refuses_to_start(daemon: Proc, tmp_path: Path) -> None:
+    out = tmp_path / "second.log"
+    second = spawn(daemon.config, out, {**os.environ, "NOTIFY_SOCKET": ""})
+    assert second.wait(120) == 2
+    text = out.read_text()
+    assert "another mmctl daemon is already running on" in text, text
+    assert daemon.status()["cycles"] > 0  # the first one is unharmed
+
+
+def _ee(daemon: Proc) -> np.ndarray:
+    return np.array(daemon.status()["robot"]["ee_position"])
+
+
+def test_enable_and_a_push_moves_the_end_effector_that_way(daemon: Proc) -> None:
+    assert daemon.call("tare")["taring"]
+    with pytest.raises(IpcError, match="tare is in progress"):
+        daemon.call("enable")
+    wait_for(lambda: not daemon.status()["taring"], "the tare", daemon)
+    wait_for(lambda: _enable_ok(daemon), "enable", daemon)
+    assert daemon.status()["state"] == "armed"
+    p0 = _ee(daemon)
+    push = np.array([0.0, 25.0, 0.0])  # +y in the world
+    daemon.call("sim", push=push.tolist())
+    box: list[np.ndarray] = []
+    wait_for(lambda: (box.append(_ee(daemon) - p0), box[-1][1] > 0.05)[1],
+             "the end-effector to move 5 cm", daemon)
+    moved = box[-1]
+    assert moved[1] > 3 * abs(moved[0]) and moved[1] > 3 * abs(moved[2]), moved
+    assert daemon.status()["state"] == "armed"
+
+
+def _enable_ok(daemon: Proc) -> bool:
+    try:
+        daemon.call("enable")
+        return True
+    except IpcError:
+        return False
+
+
+def test_mode_changes_at_run_time(daemon: Proc, capsys: pytest.CaptureFixture[str]) -> None:
+    sock = ["--socket", str(daemon.socket)]
+    assert main(["mode", "locomotion", *sock]) == 0
+    assert "mode=locomotion" in capsys.readouterr().out
+    p0 = _ee(daemon)
+    wait_for(lambda: (_ee(daemon) - p0)[1] > 0.02, "motion in locomotion", daemon)
+    assert main(["mode", "switch", *sock]) == 0
+    assert main(["switch", "locomotion", *sock]) == 0
+    st = daemon.status()
+    assert st["mode"] == "switch" and st["switch"] == "locomotion" and st["state"] == "armed"
+    assert main(["mode", "min-energy", *sock]) == 0
+    capsys.readouterr()
+    assert daemon.status()["state"] == "armed"
+    msgs = daemon.drain_notify()
+    assert any(m == "STATUS=state=armed mode=locomotion" for m in msgs), msgs
+
+
+def test_sigterm_stops_with_the_stop_commands_sent(daemon: Proc) -> None:
+    assert daemon.status()["state"] == "armed"  # still moving under the push
+    daemon.proc.send_signal(signal.SIGTERM)
+    assert daemon.proc.wait(120) == 0, daemon.log_text()[-3000:]
+    assert "STOPPING=1" in daemon.drain_notify()
+    events = [json.loads(line) for line in daemon.log_text().splitlines()
+              if line.startswith("{")]
+    names = [e["event"] for e in events]
+    assert names.index("daemon_stopping") < names.index("daemon_stopped")
+    assert next(e for e in events if e["event"] == "daemon_stopping")["reason"] == "SIGTERM"
+    arm = [json.loads(line) for line in (daemon.sim_log / "ur_commands.jsonl").open()]
+    arm = [c for c in arm if c["kind"] in ("speedj", "speed_stop")]
+    last_motion = max(i for i, c in enumerate(arm) if c["kind"] == "speedj" and any(c["qd"]))
+    after = arm[last_motion + 1:]
+    assert after and after[0]["kind"] == "speed_stop", after[:3]
+    assert all(c["kind"] == "speed_stop" or not any(c["qd"]) for c in after)
+    drives = [json.loads(line) for line in (daemon.sim_log / "drive_commands.jsonl").open()]
+    for nid in {d["node_id"] for d in drives}:
+        mine = [d for d in drives if d["node_id"] == nid]
+        assert any(d["counts"] for d in mine), "the base never moved"
+        assert mine[-1]["counts"] == 0
+    assert not daemon.socket.exists()
+
+
+def test_no_daemon_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["status", "--socket", str(tmp_path / "nobody.sock")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no mmctl daemon is running" in err
