@@ -204,6 +204,8 @@ def test_mode_changes_at_run_time(daemon: Proc, capsys: pytest.CaptureFixture[st
     assert main(["switch", "locomotion", *sock]) == 0
     st = daemon.status()
     assert st["mode"] == "switch" and st["switch"] == "locomotion" and st["state"] == "armed"
+    daemon.call("sim", press=True)  # the handle button (simulated digital input) toggles
+    wait_for(lambda: daemon.status()["switch"] == "manipulation", "the button's toggle", daemon)
     assert main(["mode", "min-energy", *sock]) == 0
     capsys.readouterr()
     assert daemon.status()["state"] == "armed"

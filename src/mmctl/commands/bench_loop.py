@@ -28,6 +28,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="base config (default: config/sim.yaml)")
     p.add_argument("--host", default="127.0.0.3",
                    help="loopback address of the bench's fake UR (default 127.0.0.3)")
+    p.add_argument("--rt-priority", type=int, metavar="N",
+                   help="SCHED_FIFO priority of both loops (default: loop.rt_priority)")
 
 
 def _figures(snap: Any, step_us: Any) -> dict[str, float | int]:
@@ -59,17 +61,21 @@ def run(args: argparse.Namespace) -> int:
     if args.seconds <= 0:
         raise MmctlError(f"--seconds {args.seconds:g}: must be > 0")
     setup_logging("warning")
-    cfg = load(args.config)
+    cfg: Any = load(args.config)
     n = int(args.seconds * cfg.loop.rate_hz) + 2000
     cfg = dataclasses.replace(
         cfg,
         arm=dataclasses.replace(cfg.arm, host=args.host),
         loop=dataclasses.replace(cfg.loop, timing_samples=n, max_consecutive_misses=10**9,
-                                 max_total_misses=10**9),
+                                 max_total_misses=10**9,
+                                 rt_priority=(cfg.loop.rt_priority if args.rt_priority is None
+                                              else args.rt_priority)),
         sim=dataclasses.replace(cfg.sim, enabled=True, human=True, auto_enable=False),
     )
     daemon = create_daemon(cfg, socket_path=None, telemetry=TelemetryService(cfg))
     result: dict[str, Any] = {"seconds": args.seconds, "rate_hz": cfg.loop.rate_hz,
+                              "rt_priority": cfg.loop.rt_priority,
+                              "spin_margin_us": cfg.loop.spin_margin * 1e6,
                               "cpus": os.cpu_count(), "loadavg_1min": os.getloadavg()[0]}
     try:
         daemon.open()
@@ -97,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
         result["loop"]["armed_at_end"] = daemon.safety.armed
         daemon.loop.stop()
         daemon.loop.wait(10.0)
-        result["sleep_baseline"] = _sleep_loop(daemon, args.seconds, n, Tick, TimingRing)
+        result["sleep_baseline"] = _in_thread(
+            lambda: _sleep_loop(daemon, args.seconds, n, Tick, TimingRing), cfg.loop)
         result["sleep_baseline"]["armed_at_end"] = daemon.safety.armed
     finally:
         daemon.shutdown()
@@ -115,6 +122,30 @@ def _step_window(step_ns: Any, first_cycle: int, count: int) -> Any:
     idx = np.arange(first_cycle, first_cycle + count) % step_ns.shape[0]
     vals = step_ns[idx] / 1e3
     return vals[vals > 0]
+
+
+def _in_thread(fn: Any, loop_cfg: Any) -> Any:
+    """Run ``fn`` on a thread with the loop's scheduling (priority, affinity) so that
+    only the waiting strategy differs; return its result or re-raise its exception."""
+    import threading
+
+    from mmctl.runtime.loop import apply_realtime
+
+    box: dict[str, Any] = {}
+
+    def body() -> None:
+        try:
+            apply_realtime(loop_cfg.rt_priority, loop_cfg.cpu_affinity, timer_slack=False)
+            box["result"] = fn()
+        except BaseException as exc:  # noqa: BLE001 -- re-raised in the caller below
+            box["error"] = exc
+
+    th = threading.Thread(target=body, name="mmctl-sleep-baseline")
+    th.start()
+    th.join()
+    if "error" in box:
+        raise box["error"]
+    return box["result"]
 
 
 def _sleep_loop(daemon: Any, seconds: float, size: int, tick_cls: Any,
@@ -149,7 +180,8 @@ def _sleep_loop(daemon: Any, seconds: float, size: int, tick_cls: Any,
 
 def _print_table(r: dict[str, Any]) -> None:
     print(f"mmctl bench loop: {r['seconds']:g} s per loop at {r['rate_hz']:g} Hz on the "
-          f"simulated robot ({r['cpus']} CPUs, load {r['loadavg_1min']:.2f})")
+          f"simulated robot ({r['cpus']} CPUs, load {r['loadavg_1min']:.2f}, SCHED_FIFO "
+          f"{r['rt_priority'] or 'off'}, spin {r['spin_margin_us']:g} us)")
     print(f"{'':22}{'compute p50/p99/max [us]':>28}{'step p50/p99':>16}"
           f"{'latency p50/p99/p99.9 [us]':>30}{'miss rate':>11}")
     for key, label in (("loop", "loop (sleep + spin)"), ("sleep_baseline", "time.sleep loop")):

@@ -19,6 +19,7 @@ devices closed.
 
 from __future__ import annotations
 
+import gc
 import math
 import queue
 import signal
@@ -39,6 +40,7 @@ from mmctl.errors import FaultCause, IpcError, MmctlError, SafetyFault, Transpor
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.devices import Devices
 from mmctl.runtime.ipc import ControlServer, Peer
+from mmctl.runtime.logging import RateLimiter
 from mmctl.runtime.loop import CycleLoop, Tick
 from mmctl.runtime.notify import Notifier
 from mmctl.runtime.safety import SafetyMonitor, SafetyState
@@ -108,6 +110,7 @@ class Daemon:
         self._t0_ns = 0
         self._status_text = ""
         self.commands_sent = {"speed_j": 0, "stop": 0, "twist": 0}
+        self._limiter = RateLimiter(1.0)
 
     # ------------------------------------------------------------------ lifecycle --
     def open(self) -> None:
@@ -129,6 +132,8 @@ class Daemon:
     def start(self) -> None:
         """Start the loop and the control socket."""
         sys.setswitchinterval(self.cfg.loop.switch_interval)
+        gc.collect()
+        gc.freeze()  # start-up objects (models, fakes) out of every later collection
         self._t0_ns = time.perf_counter_ns()
         if self.telemetry is not None:
             self.telemetry.start(ring=self.ring, origin_ns=self._t0_ns)
@@ -136,6 +141,11 @@ class Daemon:
         self.loop.start()
         if self.server is not None:
             self.server.start()
+
+    @property
+    def origin_ns(self) -> int:
+        """perf_counter_ns of t = 0 (set by :meth:`start`); a sample's ``t`` counts from it."""
+        return self._t0_ns
 
     def run(self, duration: float | None = None, install_signals: bool = True) -> int:
         """open, start, wait for a stop (signal, ``mmctl stop``, duration), shut down.
@@ -181,7 +191,10 @@ class Daemon:
             if self.safety.state is SafetyState.ARMED:
                 self.safety.disable()
         if self.server is not None:
-            self.server.close()
+            try:
+                self.server.close()
+            except OSError as exc:
+                log.error("socket_close_failed", error=str(exc))
         if self.telemetry is not None:
             self.telemetry.close()
         self.devices.close()
@@ -209,12 +222,19 @@ class Daemon:
 
     def _auto_enable(self) -> None:
         """Simulation only: tare, arm, and let the simulated person start."""
+        deadline = time.monotonic() + self.cfg.daemon.ready_timeout
         try:
             self.call("tare")
-            deadline = time.monotonic() + self.cfg.daemon.ready_timeout
             while self.core.taring and time.monotonic() < deadline and self.loop.running:
                 time.sleep(0.01)
-            self.call("enable")
+            while True:  # a condition may flicker while the fakes settle: retry a while
+                try:
+                    self.call("enable")
+                    break
+                except MmctlError:
+                    if time.monotonic() > deadline or self._stop_requested.is_set():
+                        raise
+                    time.sleep(0.1)
         except MmctlError as exc:
             log.warning("auto_enable_failed", error=str(exc))
             return
@@ -338,6 +358,7 @@ class Daemon:
     def _disable(self) -> dict[str, Any]:
         if self.safety.disable():
             self._send_stop()
+        self._update_status()
         return self.status()
 
     def _set_mode(self, mode: str) -> dict[str, Any]:
@@ -376,11 +397,13 @@ class Daemon:
         try:
             self._drain_commands()
             self._cycle(tick)
-        except Exception as exc:
-            cause = FaultCause.INTERNAL
-            if self.safety.trip(cause, error=repr(exc)):
+        except Exception as exc:  # any bug in a cycle: stop the robot, log, go on
+            if self.safety.trip(FaultCause.INTERNAL, error=repr(exc)):
                 self._send_stop()
-            log.exception("cycle_failed", error=repr(exc))
+                self._update_status()
+            suppressed = self._limiter.allow("cycle_failed")
+            if suppressed is not None:
+                log.exception("cycle_failed", error=repr(exc), suppressed=suppressed)
         self.cycles += 1
         if self.notifier.watchdog_interval is not None:
             self.notifier.watchdog_tick(tick.wake_ns)
@@ -431,11 +454,11 @@ class Daemon:
         if stop_now:
             self._send_stop()
         elif self.safety.armed and result is not None:
-            self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
+            self._send_motion(result, tick.cycle % self.cfg.loop.base_divider == 0)
         if not conditions and dev.connected:
             self._healthy_cycle.set()
         if self.sample_hook is not None and result is not None:
-            self.sample_hook(self.core.sample(result, tick.index,
+            self.sample_hook(self.core.sample(result, tick.cycle,
                                               (tick.deadline_ns - self._t0_ns) * 1e-9,
                                               self.safety.state.value))
         if stop_now:

@@ -32,14 +32,14 @@ log = structlog.get_logger("mmctl.loop")
 class Tick(NamedTuple):
     """What the loop tells the body at the start of a cycle.
 
-    index: cycle counter (0, 1, ...); deadline_ns: the absolute deadline this cycle
+    cycle: cycle counter (0, 1, ...); deadline_ns: the absolute deadline this cycle
     was due at [ns, perf_counter]; wake_ns: when it actually started [ns];
     period_ns: the nominal period [ns]; consecutive_misses: cycles in a row that
     overran; total_misses: deadlines skipped since the last :meth:`CycleLoop.reset_misses`;
     overrun: the miss budget is exhausted (the body should fault).
     """
 
-    index: int
+    cycle: int
     deadline_ns: int
     wake_ns: int
     period_ns: int
@@ -71,14 +71,16 @@ def set_timer_slack(ns: int) -> bool:
         return False
 
 
-def apply_realtime(rt_priority: int, cpu_affinity: Sequence[int]) -> list[str]:
-    """Best effort: SCHED_FIFO priority, CPU affinity and a 1 us timer slack for the
-    *calling* thread.
+def apply_realtime(rt_priority: int, cpu_affinity: Sequence[int],
+                   timer_slack: bool = True) -> list[str]:
+    """Best effort: SCHED_FIFO priority, CPU affinity and (``timer_slack``) a 1 us timer
+    slack for the *calling* thread.
 
     Returns the list of what could not be applied (each also logged as a warning).
     """
     problems: list[str] = []
-    set_timer_slack(1000)
+    if timer_slack:
+        set_timer_slack(1000)
     if cpu_affinity:
         try:
             os.sched_setaffinity(0, set(cpu_affinity))

@@ -101,7 +101,8 @@ class TimingRing:
             n = min(n, max(last, 0))
         n = max(n, 0)
         idx = (np.arange(end - n, end) % self.size) if n else np.zeros(0, np.int64)
-        return TimingSnapshot(*(c[idx] for c in cols), first_index=end - n)
+        deadline, latency, compute, slack, missed = (c[idx] for c in cols)
+        return TimingSnapshot(deadline, latency, compute, slack, missed, end - n)
 
     def stats(self, last: int | None = None) -> TimingStats:
         """Percentiles of the newest ``last`` samples."""
@@ -112,7 +113,7 @@ def summarize(s: TimingSnapshot) -> TimingStats:
     """Percentiles of compute time and wake latency, miss count and rate [us]."""
     n = len(s)
     if n == 0:
-        return TimingStats(0, *([0.0] * 8), 0, 0.0)
+        return TimingStats(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0)
     comp = s.compute_ns / 1e3
     lat = s.latency_ns / 1e3
     missed = int(s.missed.sum())
