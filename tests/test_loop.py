@@ -33,7 +33,7 @@ def test_deadlines_are_absolute_and_spaced_by_whole_periods() -> None:
 
     loop = CycleLoop(body, rate_hz=500.0, spin_margin=0.0002)
     _run(loop, done)
-    assert [t.cycle for t in ticks[:50]] == list(range(50))
+    assert [t.index for t in ticks[:50]] == list(range(50))
     gaps = np.diff([t.deadline_ns for t in ticks])
     assert np.all(gaps % loop.period_ns == 0) and np.all(gaps >= loop.period_ns)
     # A cycle never starts before its deadline (sleep-then-spin never wakes early).
@@ -49,9 +49,9 @@ def test_overruns_skip_deadlines_count_them_and_exhaust_the_budget() -> None:
 
     def body(t: Tick) -> None:
         ticks.append(t)
-        if 3 <= t.cycle < 10:
+        if 3 <= t.index < 10:
             time.sleep(0.025)  # five periods at 200 Hz: always an overrun
-        if t.overrun or t.cycle > 200:
+        if t.overrun or t.index > 200:
             done.set()
 
     loop = CycleLoop(body, rate_hz=200.0, spin_margin=0.0, max_consecutive_misses=4,
@@ -59,7 +59,7 @@ def test_overruns_skip_deadlines_count_them_and_exhaust_the_budget() -> None:
     _run(loop, done)
     first_overrun = next(t for t in ticks if t.overrun)
     assert first_overrun.consecutive_misses >= 4
-    slow = [t for t in ticks if 3 <= t.cycle < 10]
+    slow = [t for t in ticks if 3 <= t.index < 10]
     # After a slow cycle the next deadline is in the future: the missed ones were skipped.
     for a, b in itertools.pairwise(slow):
         assert (b.deadline_ns - a.deadline_ns) % loop.period_ns == 0
@@ -75,12 +75,12 @@ def test_total_budget_and_reset() -> None:
 
     def body(t: Tick) -> None:
         seen.append(t)
-        if t.cycle % 2 == 0 and not state["reset"]:
+        if t.index % 2 == 0 and not state["reset"]:
             time.sleep(0.011)  # > 2 periods at 200 Hz, but never two in a row
         if t.overrun and not state["reset"]:
             state["reset"] = True
             loop.reset_misses()
-        elif state["reset"] and t.cycle > seen[0].cycle + 40:
+        elif state["reset"] and t.index > seen[0].index + 40:
             done.set()
 
     loop = CycleLoop(body, rate_hz=200.0, spin_margin=0.0, max_consecutive_misses=100,
@@ -93,7 +93,7 @@ def test_total_budget_and_reset() -> None:
 
 def test_exception_in_body_is_stored_and_reraised() -> None:
     def body(t: Tick) -> None:
-        if t.cycle == 3:
+        if t.index == 3:
             raise ZeroDivisionError("boom")
 
     loop = CycleLoop(body, rate_hz=500.0)

@@ -454,11 +454,11 @@ class Daemon:
         if stop_now:
             self._send_stop()
         elif self.safety.armed and result is not None:
-            self._send_motion(result, tick.cycle % self.cfg.loop.base_divider == 0)
+            self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
         if not conditions and dev.connected:
             self._healthy_cycle.set()
         if self.sample_hook is not None and result is not None:
-            self.sample_hook(self.core.sample(result, tick.cycle,
+            self.sample_hook(self.core.sample(result, tick.index,
                                               (tick.deadline_ns - self._t0_ns) * 1e-9,
                                               self.safety.state.value))
         if stop_now:

@@ -32,14 +32,14 @@ log = structlog.get_logger("mmctl.loop")
 class Tick(NamedTuple):
     """What the loop tells the body at the start of a cycle.
 
-    cycle: cycle counter (0, 1, ...); deadline_ns: the absolute deadline this cycle
+    index: cycle counter (0, 1, ...); deadline_ns: the absolute deadline this cycle
     was due at [ns, perf_counter]; wake_ns: when it actually started [ns];
     period_ns: the nominal period [ns]; consecutive_misses: cycles in a row that
     overran; total_misses: deadlines skipped since the last :meth:`CycleLoop.reset_misses`;
     overrun: the miss budget is exhausted (the body should fault).
     """
 
-    cycle: int
+    index: int  # type: ignore[assignment]  # shadows tuple.index; kept: callers use it
     deadline_ns: int
     wake_ns: int
     period_ns: int
