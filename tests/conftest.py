@@ -10,6 +10,7 @@ shared cores, and speed is measured by benchmarks, never asserted in tests.
 
 from __future__ import annotations
 
+import faulthandler
 import itertools
 import os
 import socket
@@ -61,6 +62,20 @@ def loopback_host() -> str:
         if _ports_free(host):
             return host
     raise RuntimeError("no loopback address with free UR ports")
+
+
+#: Last resort against a test that hangs inside C++ code holding the GIL (ur_rtde's
+#: blocking calls do), where pytest-timeout's SIGALRM handler can never run: a C
+#: watchdog thread dumps every thread's stack and ends the worker process, so xdist
+#: reports the test as crashed and the run goes on instead of hanging CI.
+HARD_TIMEOUT_S = 420.0
+
+
+@pytest.fixture(autouse=True)
+def _hard_timeout() -> Iterator[None]:
+    faulthandler.dump_traceback_later(HARD_TIMEOUT_S, exit=True)
+    yield
+    faulthandler.cancel_dump_traceback_later()
 
 
 @pytest.fixture(autouse=True)

@@ -54,6 +54,7 @@ def test_probe_canopen_simulated_json(tmp_path: Path, capsys: pytest.CaptureFixt
 def test_probe_serial_on_a_pty_port(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cfg = config_from_dict({})
     with FakeSerialBridge(cfg) as bridge:
+        capsys.readouterr()  # the bridge's own start-up log line is not the probe's output
         rc = main(["probe", "base", "--config", _config(tmp_path), "--transport", "serial",
                    "--port", bridge.port, "--twist", "0.1", "0", "0", "--seconds", "0.3",
                    "--json"])
