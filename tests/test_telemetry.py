@@ -36,16 +36,16 @@ class RecordingSink:
     def open(self) -> None:
         self.opened += 1
 
-    def write_columns(self, columns: list[Columns]) -> None:
+    def write(self, columns: list[Columns], scene: tuple[int, float, object] | None = None,
+              pace: object = None) -> None:
         self.entered.set()
         if self.gate is not None:
             assert self.gate.wait(WAIT), "test gate never opened"
         if self.fail_after is not None and len(self.columns) >= self.fail_after:
             raise RuntimeError("sink broke")
         self.columns.extend(columns)
-
-    def write_scene(self, cycle: int, t: float, frame: object) -> None:
-        self.scenes.append(cycle)
+        if scene is not None:
+            self.scenes.append(scene[0])
 
     def write_event(self, event: Event) -> None:
         self.events.append(event)

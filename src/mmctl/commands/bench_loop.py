@@ -14,9 +14,12 @@ do the same work for the whole run.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import sys
 import time
+from collections.abc import Iterator
 from typing import Any
 
 TARGETS = {"compute_p99_us": 300.0, "latency_p99_us": 100.0, "miss_rate": 0.005}
@@ -52,15 +55,10 @@ def run(args: argparse.Namespace) -> int:
 
     from mmctl.errors import MmctlError
     from mmctl.runtime.client import load
-    from mmctl.runtime.factory import create_daemon
     from mmctl.runtime.logging import setup_logging
-    from mmctl.runtime.loop import Tick
-    from mmctl.runtime.timing import TimingRing
-    from mmctl.telemetry.service import TelemetryService
 
     if args.seconds <= 0:
         raise MmctlError(f"--seconds {args.seconds:g}: must be > 0")
-    setup_logging("warning")
     cfg: Any = load(args.config)
     n = int(args.seconds * cfg.loop.rate_hz) + 2000
     cfg = dataclasses.replace(
@@ -72,6 +70,39 @@ def run(args: argparse.Namespace) -> int:
                                               else args.rt_priority)),
         sim=dataclasses.replace(cfg.sim, enabled=True, human=True, auto_enable=False),
     )
+    with _stdout_to_stderr():  # logs (ours and the fake UR process's) stay off stdout
+        setup_logging("warning", stream=sys.stderr)
+        result = _measure(cfg, args, n)
+    result["targets"] = TARGETS
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        _print_table(result)
+    return 0
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr() -> Iterator[None]:
+    """Point file descriptor 1 at stderr for the duration (child processes too)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
+    """Run the daemon's loop, then the sleep loop; their figures."""
+    from mmctl.errors import MmctlError
+    from mmctl.runtime.factory import create_daemon
+    from mmctl.runtime.loop import Tick
+    from mmctl.runtime.timing import TimingRing
+    from mmctl.telemetry.service import TelemetryService
+
     daemon = create_daemon(cfg, socket_path=None, telemetry=TelemetryService(cfg))
     result: dict[str, Any] = {"seconds": args.seconds, "rate_hz": cfg.loop.rate_hz,
                               "rt_priority": cfg.loop.rt_priority,
@@ -108,12 +139,7 @@ def run(args: argparse.Namespace) -> int:
         result["sleep_baseline"]["armed_at_end"] = daemon.safety.armed
     finally:
         daemon.shutdown()
-    result["targets"] = TARGETS
-    if args.json:
-        print(json.dumps(result, indent=2))
-    else:
-        _print_table(result)
-    return 0
+    return result
 
 
 def _step_window(step_ns: Any, first_cycle: int, count: int) -> Any:

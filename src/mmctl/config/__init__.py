@@ -28,7 +28,7 @@ from mmctl.config.schema import build, param, section, sub, to_dict
 from mmctl.config.sensor import SensorConfig
 from mmctl.errors import ConfigError
 
-__all__ = ["Config", "load_config", "config_from_dict", "default_config", "to_dict", "ConfigError"]
+__all__ = ["Config", "ConfigError", "config_from_dict", "default_config", "load_config", "to_dict"]
 
 
 @section

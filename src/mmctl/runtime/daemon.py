@@ -170,6 +170,9 @@ class Daemon:
                     self.stop_reason = "duration"
                     break
                 self._stop_requested.wait(left)
+        except BaseException as exc:
+            self.stop_reason = self.stop_reason or f"error: {exc}"
+            raise
         finally:
             self.shutdown()
         return 1 if self.loop.error is not None else 0

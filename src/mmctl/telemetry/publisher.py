@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
@@ -27,6 +28,7 @@ import structlog
 from mmctl.telemetry import layout
 from mmctl.telemetry.batch import Columns, full_rate, plot_rate, plot_stride
 from mmctl.telemetry.events import Event
+from mmctl.telemetry.pacer import LoopPacer
 from mmctl.telemetry.queue import DropQueue
 from mmctl.telemetry.sample import TelemetrySample
 from mmctl.telemetry.scene import SceneFrame
@@ -41,8 +43,8 @@ class Sink(Protocol):
     """Where batches go (:class:`~mmctl.telemetry.rerun_sink.RerunSink`, or a test fake)."""
 
     def open(self) -> None: ...
-    def write_columns(self, columns: list[Columns]) -> None: ...
-    def write_scene(self, cycle: int, t: float, frame: SceneFrame) -> None: ...
+    def write(self, columns: list[Columns], scene: tuple[int, float, SceneFrame] | None = None,
+              pace: Callable[[], None] | None = None) -> None: ...
     def write_event(self, event: Event) -> None: ...
     def close(self) -> None: ...
 
@@ -60,12 +62,15 @@ class Publisher:
     the plot-rate series [Hz]; scene_rate_hz: wake-ups per second, one 3-D frame each
     [Hz]; queue_size: samples held at most; timing: the loop's TimingRing (or None: no
     timing series); origin_ns: perf_counter_ns of t = 0 (the ``time`` timeline of the
-    timing rows); scene: builds 3-D frames (None: no 3-D view).
+    timing rows); scene: builds 3-D frames (None: no 3-D view); spin_margin_s: the
+    loop's spin margin [s]; pace: keep the work in the loop's idle time
+    (:mod:`~mmctl.telemetry.pacer`; needs ``timing``).
     """
 
     def __init__(self, sink: Sink, *, loop_rate_hz: float = 500.0, plot_rate_hz: float = 100.0,
                  scene_rate_hz: float = 30.0, queue_size: int = 4096, timing: Any = None,
-                 origin_ns: int = 0, scene: Scene | None = None):
+                 origin_ns: int = 0, scene: Scene | None = None, spin_margin_s: float = 0.0003,
+                 pace: bool = True):
         if scene_rate_hz <= 0 or plot_rate_hz <= 0 or loop_rate_hz <= 0:
             raise ValueError("rates must be > 0")
         self.sink = sink
@@ -82,6 +87,10 @@ class Publisher:
         self.batches = 0
         self.flush_ns_max = 0  #: longest flush so far [ns]
         self._timing_next = -1
+        period_ns = round(1e9 / loop_rate_hz)
+        self.pacer = (LoopPacer(period_ns, int(spin_margin_s * 1e9))
+                      if pace and timing is not None else None)
+        self._busy = np.zeros(0, np.int64)
         self._state: tuple[str, str] | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -173,12 +182,16 @@ class Publisher:
 
     def flush(self) -> None:
         """Drain the queues into the sink once (the thread's body; tests may call it)."""
+        pace = self.pacer.wait if self.pacer is not None else _no_pace
+        pace()
         t0 = time.perf_counter_ns()
         samples = self.queue.drain()
         columns: list[Columns] = []
         if samples:
             columns.append(full_rate(samples))
+            pace()
             columns.append(plot_rate(samples, self.stride))
+            pace()
         timing = self._timing_columns()
         if timing is not None:
             columns.append(timing)
@@ -187,14 +200,16 @@ class Publisher:
             columns.append(Columns(np.array([last.cycle], np.int64),
                                    columns[0].time_ns[-1:].copy(),
                                    {layout.DROPPED.path: np.array([[float(self.queue.dropped)]])}))
-        self.sink.write_columns(columns)
+        scene = None
+        if samples and self.scene is not None:
+            pace()
+            last = samples[-1]
+            scene = (last.cycle, last.t, self.scene.frame(last))
+        self.sink.write(columns, scene, pace)
         for event in self._state_changes(samples):
             self.sink.write_event(event)
         for event in self.events.drain():
             self.sink.write_event(event)
-        if samples and self.scene is not None:
-            last = samples[-1]
-            self.sink.write_scene(last.cycle, last.t, self.scene.frame(last))
         self.batches += 1
         with self._progress:
             self.published += len(samples)
@@ -226,9 +241,17 @@ class Publisher:
         self._timing_next = snap.first_index + n
         if n == 0:
             return None
+        if self.pacer is not None:
+            busy = np.concatenate((self._busy, snap.latency_ns + snap.compute_ns))[-1024:]
+            self._busy = busy
+            self.pacer.update(int(snap.deadline_ns[-1]), int(np.percentile(busy, 99)))
         cycle = np.arange(snap.first_index, snap.first_index + n, dtype=np.int64)
         values = np.empty((n, 3))
         values[:, 0] = snap.compute_ns * 1e-3
         values[:, 1] = snap.slack_ns * 1e-3
         values[:, 2] = snap.latency_ns * 1e-3
         return Columns(cycle, snap.deadline_ns - self.origin_ns, {layout.LOOP_TIMING.path: values})
+
+
+def _no_pace() -> None:
+    """Pacing off: run every step at once."""

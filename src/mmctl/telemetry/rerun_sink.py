@@ -1,10 +1,10 @@
 """The rerun side of the publisher: the only module that logs to rerun.
 
 rerun is imported in :meth:`RerunSink.open`, never at module import, so a daemon with
-telemetry off never loads it.  Column data goes out as ``rerun.chunk.Chunk``s built
-straight from numpy/pyarrow arrays and sent together with one ``send_chunks`` call per
-flush (about 40 us per entity, a third of ``rr.send_columns`` with archetype
-helpers); the 3-D scene and events use ``RecordingStream.log``.
+telemetry off never loads it.  Series and the 3-D frame go out as rerun-tagged Arrow
+record batches (:mod:`mmctl.telemetry.arrow_batch`), one ``Chunk.from_record_batch``
+per batch and one ``send_chunks`` per flush; only the rare events use
+``RecordingStream.log``.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -25,6 +25,7 @@ import structlog
 from mmctl.config.base import MecanumConfig
 from mmctl.errors import MmctlError
 from mmctl.telemetry import layout
+from mmctl.telemetry.arrow_batch import ArrowEncoder
 from mmctl.telemetry.batch import Columns, time_ns
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.scene import SceneFrame, footprint_box
@@ -108,51 +109,6 @@ def spawn_viewer(port: int = DEFAULT_VIEWER_PORT, timeout: float = 15.0) -> subp
     raise TelemetryError(f"the rerun viewer did not listen on 127.0.0.1:{port} within {timeout:g} s")
 
 
-class _Column:
-    """A ready-made component column (duck-types ``rerun.ComponentColumn``)."""
-
-    __slots__ = ("_array", "_desc")
-
-    def __init__(self, desc: Any, array: Any):
-        self._desc = desc
-        self._array = array
-
-    def component_descriptor(self) -> Any:
-        return self._desc
-
-    def as_arrow_array(self) -> Any:
-        return self._array
-
-
-class _Index:
-    """A ready-made index column (a ``rerun.TimeColumnLike``)."""
-
-    __slots__ = ("_array", "_name")
-
-    def __init__(self, name: str, array: Any):
-        self._name = name
-        self._array = array
-
-    def timeline_name(self) -> str:
-        return self._name
-
-    def as_arrow_array(self) -> Any:
-        return self._array
-
-
-def _scene_descriptors(rr: Any) -> dict[str, Any]:
-    """Component descriptors of the 3-D archetypes, taken from rerun's own column helpers."""
-    z = np.zeros((1, 3))
-    cols = [*rr.Transform3D.columns(translation=z, quaternion=[[0.0, 0.0, 0.0, 1.0]]),
-            *rr.Points3D.columns(positions=z), *rr.LineStrips3D.columns(strips=[z]),
-            *rr.Arrows3D.columns(vectors=z, origins=z)]
-    out = {}
-    for c in cols:
-        desc = c.component_descriptor()
-        out[desc.component.split(":")[-1]] = desc
-    return out
-
-
 class RerunSink:
     """Logs columns, scene frames and events to one rerun recording stream.
 
@@ -172,12 +128,8 @@ class RerunSink:
         self.viewer: subprocess.Popen[bytes] | None = None
         self._rec: Any = None
         self._rr: Any = None
-        self._pa: Any = None
         self._chunk: Any = None
-        self._desc: Any = None
-        self._scene_desc: dict[str, Any] = {}
-        self._fsl_type: dict[int, Any] = {}
-        self._strip_type: Any = None
+        self._enc: Any = None
         self._path: list[np.ndarray] = []
 
     # -- lifecycle ------------------------------------------------------------------
@@ -187,7 +139,7 @@ class RerunSink:
         import rerun as rr
         from rerun.chunk import Chunk
 
-        self._rr, self._pa, self._chunk = rr, pa, Chunk
+        self._rr, self._chunk = rr, Chunk
         d = self.destinations
         sinks: list[Any] = []
         if d.record is not None:
@@ -207,11 +159,7 @@ class RerunSink:
             rec.set_sinks(*sinks, default_blueprint=layout.blueprint())
         self._rec = rec
         rec.send_recording_name(self.recording_name)
-        self._desc = next(iter(rr.Scalars.columns(scalars=np.zeros((1, 1))))).component_descriptor()
-        self._scene_desc = _scene_descriptors(rr)
-        item = pa.field("item", pa.float32(), nullable=False)
-        self._fsl_type = {3: pa.list_(item, 3), 4: pa.list_(item, 4)}
-        self._strip_type = pa.list_(pa.field("item", self._fsl_type[3], nullable=False))
+        self._enc = ArrowEncoder(rr, pa)
         self._log_static()
 
     def close(self) -> None:
@@ -225,50 +173,37 @@ class RerunSink:
             rec.disconnect()
 
     # -- what the publisher calls -------------------------------------------------------
-    def write_columns(self, columns: Sequence[Columns]) -> None:
-        """Send several column batches as chunks in one call (empty ones are skipped)."""
-        pa, chunk_cls, desc = self._pa, self._chunk, self._desc
-        chunks = []
-        for cols in columns:
-            n = len(cols)
-            if n == 0:
-                continue
-            index = self._index(cols.cycle, cols.time_ns)
-            for path, values in cols.values.items():
-                k = values.shape[1]
-                offsets = pa.array(np.arange(0, n * k + 1, k, dtype=np.int32))
-                arr = pa.ListArray.from_arrays(offsets, pa.array(values.reshape(-1)))
-                chunks.append(chunk_cls.from_columns(path, index, [_Column(desc, arr)]))
-        if chunks:
-            self._rec.send_chunks(chunks)
+    def write(self, columns: Sequence[Columns],
+              scene: tuple[int, float, SceneFrame] | None = None,
+              pace: Callable[[], None] | None = None) -> None:
+        """Send column batches and (optionally) one 3-D frame ``(cycle, t [s], frame)``,
+        one record batch at a time; the 3-D styles were logged once as static data.
 
-    def write_scene(self, cycle: int, t: float, frame: SceneFrame) -> None:
-        """Send one 3-D frame at ``cycle`` / ``t`` [s] (one ``send_chunks``; the styles
-        were logged once as static data)."""
-        self._path.append(frame.base_translation)
-        if len(self._path) > 600:
-            del self._path[:100]
-        d, vec3, quat = self._scene_desc, self._vec3_rows, self._quat_row
-        pts = frame.arm_points
-        parts: list[tuple[str, list[_Column]]] = [
-            (layout.BASE, [_Column(d["translation"], vec3([frame.base_translation[None]])),
-                           _Column(d["quaternion"], quat(frame.base_quaternion))]),
-            (layout.ARM, [_Column(d["strips"], self._strips_row([pts]))]),
-            (layout.ARM_JOINTS, [_Column(d["positions"], vec3([pts]))]),
-            (layout.HANDLE, [_Column(d["translation"], vec3([frame.handle_translation[None]])),
-                             _Column(d["quaternion"], quat(frame.handle_quaternion))]),
-            (layout.TWIST_ARROW, [_Column(d["vectors"], vec3([frame.twist_vector[None]])),
-                                  _Column(d["origins"], vec3([frame.handle_translation[None]]))]),
-            (layout.FORCE_ARROW, [_Column(d["vectors"], vec3([frame.force_vector[None]])),
-                                  _Column(d["origins"], vec3([frame.handle_translation[None]]))]),
-            (layout.P_DES, [_Column(d["positions"], vec3([frame.p_des[None]]))]),
-        ]
-        if len(self._path) >= 2:
-            parts.append((layout.BASE_PATH, [_Column(d["strips"],
-                                                     self._strips_row([np.array(self._path)]))]))
-        index = self._index(np.array([cycle], np.int64), time_ns(np.array([t])))
-        self._rec.send_chunks([self._chunk.from_columns(path, index, cols)
-                               for path, cols in parts])
+        pace: called between the steps (each ~0.1-0.3 ms of interpreter time) so the
+        caller can keep them in the control loop's idle time.
+        """
+        enc = self._enc
+        pace = pace if pace is not None else _no_pace
+        for c in columns:
+            pace()
+            self._send(enc.columns(c), pace)
+        if scene is not None:
+            cycle, t, frame = scene
+            self._path.append(frame.base_translation)
+            if len(self._path) > 600:
+                del self._path[:100]
+            path = np.array(self._path) if len(self._path) % 3 == 1 else None
+            pace()
+            self._send(enc.scene(cycle, int(time_ns(np.array([t]))[0]), frame, path), pace)
+
+    def _send(self, batch: Any, pace: Callable[[], None]) -> None:
+        """One record batch -> chunks -> the stream, with a pacing point between."""
+        if batch is None:
+            return
+        pace()
+        chunks = self._chunk.from_record_batch(batch)
+        pace()
+        self._rec.send_chunks(chunks)
 
     def write_event(self, event: Event) -> None:
         """Log a text line and/or a row of named values at the event's cycle."""
@@ -280,41 +215,6 @@ class RerunSink:
             rec.log(event.entity, rr.AnyValues(**dict(event.values)))
 
     # -- internals ------------------------------------------------------------------------
-    def _index(self, cycle: np.ndarray, t_ns: np.ndarray) -> list[_Index]:
-        pa = self._pa
-        return [_Index(layout.TIMELINE_CYCLE, pa.array(cycle, pa.int64())),
-                _Index(layout.TIMELINE_TIME,
-                       pa.array(t_ns.astype("timedelta64[ns]"), pa.duration("ns")))]
-
-    def _fsl(self, values: np.ndarray, width: int) -> Any:
-        """(n, width) -> FixedSizeList<float32 not null>[width] (rerun's vector layout)."""
-        pa = self._pa
-        flat = pa.array(np.ascontiguousarray(values, dtype=np.float32).reshape(-1))
-        return pa.FixedSizeListArray.from_arrays(flat, type=self._fsl_type[width])
-
-    def _vec3_rows(self, rows: list[np.ndarray]) -> Any:
-        """One row per (k_i, 3) array -> list<vec3> column."""
-        pa = self._pa
-        offsets = np.zeros(len(rows) + 1, np.int32)
-        offsets[1:] = np.cumsum([len(r) for r in rows])
-        return pa.ListArray.from_arrays(pa.array(offsets), self._fsl(np.concatenate(rows), 3))
-
-    def _quat_row(self, q: np.ndarray) -> Any:
-        """One (x, y, z, w) quaternion -> a one-row list<vec4> column."""
-        pa = self._pa
-        return pa.ListArray.from_arrays(pa.array(np.array([0, 1], np.int32)),
-                                        self._fsl(q[None], 4))
-
-    def _strips_row(self, strips: list[np.ndarray]) -> Any:
-        """One row holding several (k_i, 3) line strips -> list<list<vec3>> column."""
-        pa = self._pa
-        inner = np.zeros(len(strips) + 1, np.int32)
-        inner[1:] = np.cumsum([len(s) for s in strips])
-        points = self._fsl(np.concatenate(strips), 3)
-        strip_arr = pa.ListArray.from_arrays(pa.array(inner), points, type=self._strip_type)
-        return pa.ListArray.from_arrays(pa.array(np.array([0, len(strips)], np.int32)),
-                                        strip_arr)
-
     def _set_time(self, cycle: int, t: float) -> None:
         rec = self._rec
         rec.set_time(layout.TIMELINE_CYCLE, sequence=int(cycle))
@@ -345,3 +245,7 @@ class RerunSink:
             rec.log(path, style, static=True)
         if self.static:
             rec.log("telemetry/info", rr.AnyValues(**self.static), static=True)
+
+
+def _no_pace() -> None:
+    """No pacing: run every step at once."""

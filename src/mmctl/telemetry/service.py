@@ -86,7 +86,8 @@ class TelemetryService:
         self.publisher = Publisher(sink, loop_rate_hz=cfg.loop.rate_hz, plot_rate_hz=t.plot_rate,
                                    scene_rate_hz=t.scene_rate, queue_size=t.queue_size,
                                    timing=ring, origin_ns=origin_ns,
-                                   scene=SceneBuilder(cfg.robot))
+                                   scene=SceneBuilder(cfg.robot),
+                                   spin_margin_s=cfg.loop.spin_margin)
         self.publisher.start()
         log.info("telemetry_started", viewer=self.destinations.viewer,
                  connect=self.destinations.connect, record=self.destinations.record)
