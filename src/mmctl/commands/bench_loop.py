@@ -33,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="loopback address of the bench's fake UR (default 127.0.0.3)")
     p.add_argument("--rt-priority", type=int, metavar="N",
                    help="SCHED_FIFO priority of both loops (default: loop.rt_priority)")
+    p.add_argument("--telemetry", action="store_true",
+                   help="also time the daemon's loop with telemetry off vs on (a publisher "
+                        "recording to a temporary .rrd) in alternating windows of the same "
+                        "run, --seconds in all; JSON key 'telemetry'")
 
 
 def _figures(snap: Any, step_us: Any) -> dict[str, float | int]:
@@ -132,6 +136,11 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         steps = _step_window(daemon.step_ns, snap.first_index, len(snap))
         result["loop"] = _figures(snap, steps)
         result["loop"]["armed_at_end"] = daemon.safety.armed
+        if args.telemetry:
+            from mmctl.telemetry.overhead import windows_on_daemon
+
+            result["telemetry"] = windows_on_daemon(daemon, args.seconds, phases=4)
+            result["telemetry"]["armed_at_end"] = daemon.safety.armed
         daemon.loop.stop()
         daemon.loop.wait(10.0)
         result["sleep_baseline"] = _in_thread(
@@ -216,6 +225,11 @@ def _print_table(r: dict[str, Any]) -> None:
         step = f"{f.get('step_p50_us', 0):.0f}/{f.get('step_p99_us', 0):.0f}"
         lat = f"{f['latency_p50_us']:.0f}/{f['latency_p99_us']:.0f}/{f['latency_p999_us']:.0f}"
         print(f"{label:22}{comp:>28}{step:>16}{lat:>30}{100 * f['miss_rate']:>10.2f}%")
+    if "telemetry" in r:
+        from mmctl.telemetry.overhead import format_report
+
+        print(f"\ntelemetry off vs on (daemon loop, alternating {r['seconds'] / 4:g} s windows):")
+        print(format_report(r["telemetry"]))
     t = r["targets"]
     print(f"targets: compute p99 < {t['compute_p99_us']:g} us, wake latency p99 < "
           f"{t['latency_p99_us']:g} us, miss rate < {100 * t['miss_rate']:g} %")
