@@ -88,6 +88,15 @@ class TimingRing:
         self._missed[i] = missed
         self._count += 1  # publish: readers only trust slots below this count
 
+    def last(self) -> tuple[int, int, int, int, int] | None:
+        """The newest row (deadline, latency, compute, slack, missed) [ns], or None."""
+        n = self._count
+        if n == 0:
+            return None
+        i = (n - 1) % self.size
+        return (int(self._deadline[i]), int(self._latency[i]), int(self._compute[i]),
+                int(self._slack[i]), int(self._missed[i]))
+
     def snapshot(self, last: int | None = None) -> TimingSnapshot:
         """Copy the newest ``last`` samples (default: all the ring holds), oldest first."""
         end = self._count

@@ -88,7 +88,7 @@ class Publisher:
         self.flush_ns_max = 0  #: longest flush so far [ns]
         self._timing_next = -1
         period_ns = round(1e9 / loop_rate_hz)
-        self.pacer = (LoopPacer(period_ns, int(spin_margin_s * 1e9))
+        self.pacer = (LoopPacer(timing, period_ns, int(spin_margin_s * 1e9))
                       if pace and timing is not None else None)
         self._busy = np.zeros(0, np.int64)
         self._state: tuple[str, str] | None = None
@@ -244,7 +244,7 @@ class Publisher:
         if self.pacer is not None:
             busy = np.concatenate((self._busy, snap.latency_ns + snap.compute_ns))[-1024:]
             self._busy = busy
-            self.pacer.update(int(snap.deadline_ns[-1]), int(np.percentile(busy, 99)))
+            self.pacer.update(int(np.percentile(busy, 75)))
         cycle = np.arange(snap.first_index, snap.first_index + n, dtype=np.int64)
         values = np.empty((n, 3))
         values[:, 0] = snap.compute_ns * 1e-3
