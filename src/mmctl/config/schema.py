@@ -17,7 +17,7 @@ import math
 import types
 import typing
 from collections.abc import Mapping
-from typing import Any, Literal, get_args, get_origin
+from typing import Any, Literal, cast, get_args, get_origin
 
 from mmctl.errors import ConfigError
 
@@ -131,7 +131,8 @@ def _tuple(path: str, value: Any, typ: Any, meta: Mapping[str, Any], source: str
     if elem in (float, int, bool, str):
         return tuple(_scalar(f"{path}[{i}]", v, elem, meta, source) for i, v in enumerate(value))
     if dataclasses.is_dataclass(elem):
-        return tuple(build(elem, v, f"{path}[{i}]", source) for i, v in enumerate(value))
+        return tuple(build(cast(type, elem), v, f"{path}[{i}]", source)
+                     for i, v in enumerate(value))
     raise TypeError(f"unsupported tuple element {elem!r} at {path}")
 
 
@@ -151,7 +152,7 @@ def _convert(path: str, value: Any, typ: Any, meta: Mapping[str, Any], source: s
     if origin is tuple:
         return _tuple(path, value, typ, meta, source)
     if dataclasses.is_dataclass(typ):
-        return build(typ, value, path, source)
+        return build(cast(type, typ), value, path, source)
     return _scalar(path, value, typ, meta, source)
 
 

@@ -35,7 +35,7 @@ def wheel_matrix(geom: MecanumConfig) -> Mat:
 
 def odometry_matrix(geom: MecanumConfig) -> Mat:
     """The (3, 4) least-squares inverse of :func:`wheel_matrix`: twist = P @ wheels."""
-    return np.linalg.pinv(wheel_matrix(geom))
+    return np.asarray(np.linalg.pinv(wheel_matrix(geom)), dtype=np.float64)
 
 
 def twist_to_wheels(geom_or_w: MecanumConfig | Mat, twist: Mat) -> Mat:

@@ -73,7 +73,7 @@ class StudyConfig:
         """The control configuration of one execution: the file (or defaults) with
         ``idk.strategy`` set to ``strategy``."""
         cfg = load_config(Path(self.config_path)) if self.config_path else default_config()
-        return replace(cfg, idk=replace(cfg.idk, strategy=strategy))
+        return replace(cfg, idk=replace(cfg.idk, strategy=strategy))  # type: ignore[type-var]
 
     def plant_params(self, cfg: Config) -> PlantParams:
         """The plant of this study for the control configuration ``cfg``."""

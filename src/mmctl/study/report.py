@@ -9,7 +9,7 @@ import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -166,7 +166,7 @@ def write_outputs(
 ) -> tuple[list[MetricAnalysis], dict[str, Any]]:
     """Write results.csv and summary.json into ``out``; return the analysis and summary."""
     out.mkdir(parents=True, exist_ok=True)
-    analysis = analyse(values(execs), METRICS)
+    analysis = analyse(cast(Any, values(execs)), METRICS)
     (out / "results.csv").write_text(results_csv(execs), encoding="utf-8")
     doc = summary(execs, analysis, meta)
     (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
