@@ -31,6 +31,7 @@ from mmctl.runtime.factory import create_daemon
 from mmctl.runtime.safety import EnableRefused, SafetyState
 from mmctl.sim.fake_ur import CommandKind
 from mmctl.types import Wrench
+from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -61,16 +62,6 @@ class World:
         """Arm commands the daemon sent (speedJ + stops) so far."""
         c = self.daemon.commands_sent
         return c["speed_j"] + c["stop"]
-
-
-def wait_for(pred: Callable[[], Any], what: str, timeout: float = 60.0) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(0.01)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def until(get: Callable[[], Any], ok: Callable[[Any], bool], what: str,

@@ -5,7 +5,6 @@ recomputed from it equal the ones the daemon logged for a bracketed trial."""
 from __future__ import annotations
 
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -19,18 +18,13 @@ from mmctl.telemetry import layout
 from mmctl.telemetry.recording import column_name, load_recording, recording_metrics
 from mmctl.telemetry.rerun_sink import Destinations
 from mmctl.telemetry.service import TelemetryService
+from waiting import wait_for
 
 WAIT = 90.0  # generous: a loaded machine starts the fake UR process slowly
 
 
 def _wait(pred: Any, what: str, timeout: float = WAIT) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+    return wait_for(pred, what, timeout, interval=0.05)
 
 
 def _status(sock: Path) -> dict[str, Any] | None:
