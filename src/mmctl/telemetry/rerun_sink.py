@@ -196,14 +196,13 @@ class RerunSink:
             pace()
             self._send(enc.scene(cycle, int(time_ns(np.array([t]))[0]), frame, path), pace)
 
-    def _send(self, batch: Any, pace: Callable[[], None]) -> None:
-        """One record batch -> chunks -> the stream, with a pacing point between."""
-        if batch is None:
-            return
-        pace()
-        chunks = self._chunk.from_record_batch(batch)
-        pace()
-        self._rec.send_chunks(chunks)
+    def _send(self, batches: list[Any], pace: Callable[[], None]) -> None:
+        """Record batches -> chunks -> the stream, with a pacing point before each call."""
+        for batch in batches:
+            pace()
+            chunks = self._chunk.from_record_batch(batch)
+            pace()
+            self._rec.send_chunks(chunks)
 
     def write_event(self, event: Event) -> None:
         """Log a text line and/or a row of named values at the event's cycle."""
