@@ -139,7 +139,7 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         if args.telemetry:
             from mmctl.telemetry.overhead import windows_on_daemon
 
-            result["telemetry"] = windows_on_daemon(daemon, args.seconds, phases=4)
+            result["telemetry"] = windows_on_daemon(daemon, args.seconds, phases=10)
             result["telemetry"]["armed_at_end"] = daemon.safety.armed
         daemon.loop.stop()
         daemon.loop.wait(10.0)
@@ -228,7 +228,7 @@ def _print_table(r: dict[str, Any]) -> None:
     if "telemetry" in r:
         from mmctl.telemetry.overhead import format_report
 
-        print(f"\ntelemetry off vs on (daemon loop, alternating {r['seconds'] / 4:g} s windows):")
+        print(f"\ntelemetry off vs on (daemon loop, alternating {r['seconds'] / 10:g} s windows):")
         print(format_report(r["telemetry"]))
     t = r["targets"]
     print(f"targets: compute p99 < {t['compute_p99_us']:g} us, wake latency p99 < "

@@ -74,6 +74,11 @@ class TelemetryConfig:
         30.0, unit="Hz", gt=0.0, le=200.0, doc="3-D frames and publisher wake-ups per second"
     )
     queue_size: int = param(4096, gt=0, doc="samples held between the loop and the publisher")
+    process: bool = param(
+        False, doc="run rerun in a child process (its GIL-holding calls then stay out of the "
+        "loop's interpreter, but the process competes for the CPU: on 2 cores the loop's "
+        "wake latency got worse); false: in the publisher thread, paced into the loop's "
+        "idle time")
     viewer: bool = param(False, doc="spawn a local rerun viewer (127.0.0.1:9876)")
     connect: str = param(
         "", doc="stream to a running viewer: HOST:PORT, PORT or rerun+http URL; '' = no"

@@ -1,10 +1,10 @@
 """Measure what telemetry costs the control loop: the same body, telemetry off vs on.
 
 :func:`windows_on_daemon` does it on a running daemon (`mmctl bench loop --telemetry`):
-consecutive measurement windows alternate off / on (off, on, off, on, ...); for each
-"on" window a publisher recording to an ``.rrd`` is started and the daemon's sample hook
-installed, for each "off" window both are removed.  Timings come from the daemon's own
-timing ring and are pooled per condition.
+consecutive measurement windows alternate off / on (off, on, off, on, ...) with one
+publisher recording to an ``.rrd`` throughout; an "on" window installs the daemon's
+sample hook, an "off" window removes it.  Timings come from the daemon's own timing
+ring and are pooled per condition.
 
 :func:`compare` runs a real :class:`~mmctl.runtime.loop.CycleLoop` for several phases in
 one process, alternating off / on (off, on, off, on, ...), each phase with a fresh
@@ -128,13 +128,17 @@ def _report(phases: list[Phase]) -> dict[str, Any]:
     }
 
 
-def windows_on_daemon(daemon: Any, seconds: float, phases: int = 4,
+def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
                       record_dir: Path | None = None) -> dict[str, Any]:
     """Alternate telemetry off/on windows of ``seconds / phases`` on a running daemon.
 
     daemon: started (loop running) and armed, with ``cfg``, ``ring``, ``sample_hook`` and
-    ``_t0_ns``; its own sample hook is restored at the end.  Returns the same dict as
-    :func:`compare`.  The daemon's ring must hold at least one window of cycles.
+    ``_t0_ns``; its own sample hook is restored at the end.  One publisher (recording to
+    an ``.rrd``) runs for the whole measurement; an "on" window installs its hook (the
+    loop builds samples, the publisher batches and sends them), an "off" window removes
+    it (the publisher idles).  Many short windows average out the machine's drift.
+    Returns the same dict as :func:`compare`.  The daemon's ring must hold at least one
+    window of cycles.
     """
     import time
 
@@ -145,41 +149,31 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 4,
     if record_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="mmctl-telemetry-bench-")
         record_dir = Path(tmp.name)
-    import pyarrow  # noqa: F401 -- import the heavy parts once, outside the windows
-    import rerun
-    import rerun.chunk  # noqa: F401
-
-    settle = min(0.5, window / 10)
+    settle = min(0.2, window / 10)
     saved = daemon.sample_hook
     done: list[Phase] = []
+    service = TelemetryService(cfg, Destinations(record=str(record_dir / "bench.rrd")))
     try:
+        service.start(ring, daemon._t0_ns)
+        pub = service.publisher
+        hook = service.hook()
+        time.sleep(1.0)  # start-up (the publisher's process, rerun's threads) is not steady state
         for i in range(n):
             on = i % 2 == 1
-            service = None
-            if on:
-                service = TelemetryService(
-                    cfg, Destinations(record=str(record_dir / f"bench-window{i}.rrd")))
-                service.start(ring, daemon._t0_ns)
-                daemon.sample_hook = service.hook()
-            else:
-                daemon.sample_hook = None
-            time.sleep(settle)  # opening the recording is start-up cost, not steady state
-            c0 = ring.count
+            daemon.sample_hook = hook if on else None
+            time.sleep(settle)  # the last batch of an "on" window is still being sent
+            c0, p0, d0 = ring.count, pub.published, pub.queue.dropped
             time.sleep(window)
             snap = ring.snapshot(ring.count - c0)
-            stats: dict[str, Any] = {}
-            if service is not None:
-                pub = service.publisher
-                daemon.sample_hook = None
-                service.close()
-                stats = pub.stats()
-                if pub.error is not None:
-                    raise pub.error
-            done.append(Phase(on, snap, int(stats.get("published", 0)),
-                              int(stats.get("dropped", 0)),
-                              float(stats.get("flush_max_us", 0.0))))
+            done.append(Phase(on, snap, pub.published - p0 if on else 0,
+                              pub.queue.dropped - d0, pub.flush_ns_max / 1e3))
+        daemon.sample_hook = None
+        service.close()
+        if pub.error is not None:
+            raise pub.error
     finally:
         daemon.sample_hook = saved
+        service.close()
         if tmp is not None:
             tmp.cleanup()
     return _report(done)

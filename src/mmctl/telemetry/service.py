@@ -81,8 +81,13 @@ class TelemetryService:
         static: dict[str, float | int | str] = {"period_s": 1.0 / cfg.loop.rate_hz, "loop_rate_hz": cfg.loop.rate_hz,
                   "plot_rate_hz": t.plot_rate, "scene_rate_hz": t.scene_rate,
                   "queue_size": t.queue_size, "config": cfg.name, "mmctl": __version__}
-        sink = RerunSink(self.destinations, recording_name=cfg.name, static=static,
-                         mecanum=cfg.base.mecanum)
+        sink_cls: Any = RerunSink
+        if t.process:
+            from mmctl.telemetry.process_sink import ProcessSink
+
+            sink_cls = ProcessSink
+        sink = sink_cls(self.destinations, recording_name=cfg.name, static=static,
+                        mecanum=cfg.base.mecanum)
         self.publisher = Publisher(sink, loop_rate_hz=cfg.loop.rate_hz, plot_rate_hz=t.plot_rate,
                                    scene_rate_hz=t.scene_rate, queue_size=t.queue_size,
                                    timing=ring, origin_ns=origin_ns,

@@ -1,0 +1,42 @@
+"""`mmctl bench loop --json` on the simulated robot: the documented keys, figures that
+are numbers, telemetry windows when asked.  Nothing about speed is asserted."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from mmctl.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+KEYS = {"compute_p50_us", "compute_p99_us", "compute_max_us", "latency_p50_us",
+        "latency_p99_us", "latency_p999_us", "miss_rate", "cycles"}
+
+
+@pytest.mark.timeout(300)
+def test_bench_loop_json(tmp_path: Path, loopback_host: str,
+                         capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
+    tag = loopback_host.replace(".", "-")
+    cfg["sensor"]["can"]["channel"] = f"bench-s-{tag}"
+    cfg["base"]["canopen"]["channel"] = f"bench-b-{tag}"
+    path = tmp_path / "bench.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    rc = main(["bench", "loop", "--seconds", "1", "--json", "--telemetry", "--config", str(path),
+               "--host", loopback_host])
+    assert rc == 0
+    rep = json.loads(capsys.readouterr().out)
+    for key in ("loop", "sleep_baseline"):
+        fig = rep[key]
+        assert KEYS <= set(fig), key
+        assert fig["cycles"] > 300  # about 500 cycles in 1 s
+        assert 0.0 <= fig["miss_rate"] <= 1.0
+        assert 0.0 < fig["compute_p50_us"] <= fig["compute_p99_us"] <= fig["compute_max_us"]
+        assert fig["latency_p50_us"] <= fig["latency_p99_us"] <= fig["latency_p999_us"]
+    tel = rep["telemetry"]
+    assert tel["phases"] == 10 and tel["off"]["cycles"] > 0 and tel["on"]["cycles"] > 0
+    assert tel["published"] > 0  # the "on" windows' samples reached the recording
+    assert rep["targets"]["compute_p99_us"] == 300.0
