@@ -19,11 +19,12 @@ venv: $(VENV)/.installed
 run: venv
 	$(BIN)/mmctl run $(ARGS)
 
-# --max-worker-restart: a worker that dies (a crash in a C extension, or the
-# conftest's hard timeout) fails the run instead of leaving xdist's loadfile
-# scheduler waiting forever (seen: a crashed worker hung the whole run).
+# --max-worker-restart=0: a worker that dies (a crash in a C extension, or the
+# conftest's hard timeout) ends the run at once with "worker crashed while running
+# <test>"; with restarts, xdist's loadfile scheduler was seen waiting forever after a
+# crash (the CI run that went over its time).
 test: venv
-	$(BIN)/python -m pytest -n 2 --dist loadfile --max-worker-restart=2 $(ARGS)
+	$(BIN)/python -m pytest -n 2 --dist loadfile --max-worker-restart=0 $(ARGS)
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info
