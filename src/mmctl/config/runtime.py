@@ -72,8 +72,8 @@ class TelemetryConfig:
     plot_rate: float = param(100.0, unit="Hz", gt=0.0, doc="rate of the plot-only series")
     scene_rate: float = param(
         15.0, unit="Hz", gt=0.0, le=200.0,
-        doc="3-D frames and publisher wake-ups per second (15: fewer, larger batches; "
-        "measured loop compute p99 +4-7 % with telemetry on vs +13-31 % at 30 Hz)",
+        doc="3-D frames and publisher wake-ups per second (fewer wake-ups, larger batches: "
+        "less interference with the loop; `mmctl bench loop --telemetry` measures it)",
     )
     queue_size: int = param(4096, gt=0, doc="samples held between the loop and the publisher")
     process: bool = param(
