@@ -1,14 +1,16 @@
 """Time the control loop on the simulated robot, next to a plain time.sleep loop.
 
 The daemon runs in this process on the simulated robot (fake UR controller, CAN
-sensor, CANopen drives, a simulated person pushing), armed, for --seconds with its
-real loop thread (absolute deadlines, sleep then spin).  Then the same daemon cycle —
-the same work: read devices, control step, send commands — runs for --seconds more
-in a plain loop that only calls ``time.sleep`` until each absolute deadline.  Both
-report compute time (cycle body) p50/p99/max, wake latency (start minus deadline)
-p50/p99/p99.9 and the deadline-miss rate; "step" is the pure control chain's share
-of the compute time.  Overruns do not fault here (the budget is lifted) so both loops
-do the same work for the whole run.
+sensor, CANopen drives, a simulated person pushing), armed, with its real loop thread.
+Its wait alternates, in ``--windows`` pairs of windows, between the loop's own wait
+(absolute deadlines, sleep then spin, 1 us timer slack) and a plain ``time.sleep`` to
+each absolute deadline (the kernel's default 50 us timer slack, no spin): the same
+thread doing the same work — read devices, control step, send commands — with only the
+wait different, and both sampled across the whole run, so the machine's drift over the
+run (large on shared VMs) cannot favour either.  Each reports compute time (cycle
+body) p50/p99/max, wake latency (start minus deadline) p50/p99/p99.9 and the
+deadline-miss rate, pooled over its windows; "step" is the pure control chain's share
+of the compute time.  Overruns do not fault here (the budget is lifted).
 """
 
 from __future__ import annotations
@@ -26,7 +28,10 @@ TARGETS = {"compute_p99_us": 300.0, "latency_p99_us": 100.0, "miss_rate": 0.005}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seconds", type=float, default=10.0, help="duration of each loop [s]")
+    p.add_argument("--seconds", type=float, default=10.0,
+                   help="time measured with each wait [s] (the run takes about twice that)")
+    p.add_argument("--windows", type=int, default=10,
+                   help="alternating windows per wait (default 10)")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     p.add_argument("--config", metavar="FILE", help="base config (default: config/sim.yaml)")
     p.add_argument("--host", default="127.0.0.3",
@@ -63,6 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.seconds <= 0:
         raise MmctlError(f"--seconds {args.seconds:g}: must be > 0")
+    if args.windows < 1:
+        raise MmctlError(f"--windows {args.windows}: must be >= 1")
     cfg: Any = load(args.config)
     n = int(args.seconds * cfg.loop.rate_hz) + 2000
     cfg = dataclasses.replace(
@@ -100,15 +107,14 @@ def _stdout_to_stderr() -> Iterator[None]:
 
 
 def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
-    """Run the daemon's loop, then the sleep loop; their figures."""
+    """Run the daemon's loop with both waits in alternating windows; their figures."""
     from mmctl.errors import MmctlError
     from mmctl.runtime.factory import create_daemon
-    from mmctl.runtime.loop import Tick
-    from mmctl.runtime.timing import TimingRing
     from mmctl.telemetry.service import TelemetryService
 
     daemon = create_daemon(cfg, socket_path=None, telemetry=TelemetryService(cfg))
-    result: dict[str, Any] = {"seconds": args.seconds, "rate_hz": cfg.loop.rate_hz,
+    result: dict[str, Any] = {"seconds": args.seconds, "windows": args.windows,
+                              "rate_hz": cfg.loop.rate_hz,
                               "rt_priority": cfg.loop.rt_priority,
                               "spin_margin_us": cfg.loop.spin_margin * 1e6,
                               "cpus": os.cpu_count(), "loadavg_1min": os.getloadavg()[0]}
@@ -129,26 +135,55 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
                 time.sleep(0.1)
         daemon.sim.start_human()
         time.sleep(1.0)  # warm-up
-        c0 = daemon.ring.count
-        time.sleep(args.seconds)
-        count = daemon.ring.count - c0
-        snap = daemon.ring.snapshot(count)
-        steps = _step_window(daemon.step_ns, snap.first_index, len(snap))
-        result["loop"] = _figures(snap, steps)
-        result["loop"]["armed_at_end"] = daemon.safety.armed
+        result["loop"], result["sleep_baseline"] = _interleaved(daemon, args.seconds,
+                                                                args.windows)
+        result["loop"]["armed_at_end"] = result["sleep_baseline"]["armed_at_end"] = (
+            daemon.safety.armed)
         if args.telemetry:
             from mmctl.telemetry.overhead import windows_on_daemon
 
             result["telemetry"] = windows_on_daemon(daemon, args.seconds, phases=10)
             result["telemetry"]["armed_at_end"] = daemon.safety.armed
-        daemon.loop.stop()
-        daemon.loop.wait(10.0)
-        result["sleep_baseline"] = _in_thread(
-            lambda: _sleep_loop(daemon, args.seconds, n, Tick, TimingRing), cfg.loop)
-        result["sleep_baseline"]["armed_at_end"] = daemon.safety.armed
     finally:
         daemon.shutdown()
     return result
+
+
+def _interleaved(daemon: Any, seconds: float, windows: int
+                 ) -> tuple[dict[str, float | int], dict[str, float | int]]:
+    """``windows`` pairs of windows of ``seconds / windows``: the loop's wait, then the
+    plain sleep (:attr:`~mmctl.runtime.loop.CycleLoop.plain_sleep`); pooled figures of
+    each.  The first cycles after a switch (``_SETTLE``) are not counted."""
+    from mmctl.runtime.timing import concat
+
+    loop, ring = daemon.loop, daemon.ring
+    window = seconds / windows
+    snaps: dict[bool, list[Any]] = {False: [], True: []}
+    try:
+        for i in range(2 * windows):
+            plain = i % 2 == 1
+            loop.plain_sleep = plain
+            time.sleep(_SETTLE)
+            c0 = ring.count
+            time.sleep(window)
+            snaps[plain].append(ring.snapshot(ring.count - c0))
+    finally:
+        loop.plain_sleep = False
+    out = []
+    for plain in (False, True):
+        steps = [_step_window(daemon.step_ns, s.first_index, len(s)) for s in snaps[plain]]
+        out.append(_figures(concat(snaps[plain]), _concat_arrays(steps)))
+    return out[0], out[1]
+
+
+_SETTLE = 0.05
+"""[s] after a switch of the wait, not counted (the switch lands at the next cycle)."""
+
+
+def _concat_arrays(parts: list[Any]) -> Any:
+    import numpy as np
+
+    return np.concatenate(parts) if parts else np.zeros(0)
 
 
 def _step_window(step_ns: Any, first_cycle: int, count: int) -> Any:
@@ -159,64 +194,11 @@ def _step_window(step_ns: Any, first_cycle: int, count: int) -> Any:
     return vals[vals > 0]
 
 
-def _in_thread(fn: Any, loop_cfg: Any) -> Any:
-    """Run ``fn`` on a thread with the loop's scheduling (priority, affinity) so that
-    only the waiting strategy differs; return its result or re-raise its exception."""
-    import threading
-
-    from mmctl.runtime.loop import apply_realtime
-
-    box: dict[str, Any] = {}
-
-    def body() -> None:
-        try:
-            apply_realtime(loop_cfg.rt_priority, loop_cfg.cpu_affinity, timer_slack=False)
-            box["result"] = fn()
-        except BaseException as exc:  # noqa: BLE001 -- re-raised in the caller below
-            box["error"] = exc
-
-    th = threading.Thread(target=body, name="mmctl-sleep-baseline")
-    th.start()
-    th.join()
-    if "error" in box:
-        raise box["error"]
-    return box["result"]
-
-
-def _sleep_loop(daemon: Any, seconds: float, size: int, tick_cls: Any,
-                ring_cls: Any) -> dict[str, float | int]:
-    """The same cycle in a plain loop: ``time.sleep`` to each absolute deadline."""
-    ring = ring_cls(size)
-    period = daemon.loop.period_ns
-    clock = time.perf_counter_ns
-    first = daemon.cycles
-    deadline = clock() + period
-    end = deadline + int(seconds * 1e9)
-    k = 0
-    while deadline < end:
-        delay = deadline - clock()
-        if delay > 0:
-            time.sleep(delay * 1e-9)
-        wake = clock()
-        daemon.cycle(tick_cls(daemon.cycles, deadline, wake, period, 0, 0, False))
-        done = clock()
-        this = deadline
-        deadline += period
-        missed = 0
-        if done > deadline:
-            missed = (done - deadline) // period + 1
-            deadline += missed * period
-        ring.record(this, wake - this, done - wake, deadline - missed * period - done, missed)
-        k += 1
-    snap = ring.snapshot(k)
-    steps = _step_window(daemon.step_ns, first, k)
-    return _figures(snap, steps)
-
-
 def _print_table(r: dict[str, Any]) -> None:
-    print(f"mmctl bench loop: {r['seconds']:g} s per loop at {r['rate_hz']:g} Hz on the "
-          f"simulated robot ({r['cpus']} CPUs, load {r['loadavg_1min']:.2f}, SCHED_FIFO "
-          f"{r['rt_priority'] or 'off'}, spin {r['spin_margin_us']:g} us)")
+    print(f"mmctl bench loop: {r['seconds']:g} s per wait in {r['windows']} alternating "
+          f"windows each, at {r['rate_hz']:g} Hz on the simulated robot ({r['cpus']} CPUs, "
+          f"load {r['loadavg_1min']:.2f}, SCHED_FIFO {r['rt_priority'] or 'off'}, spin "
+          f"{r['spin_margin_us']:g} us)")
     print(f"{'':22}{'compute p50/p99/max [us]':>28}{'step p50/p99':>16}"
           f"{'latency p50/p99/p99.9 [us]':>30}{'miss rate':>11}")
     for key, label in (("loop", "loop (sleep + spin)"), ("sleep_baseline", "time.sleep loop")):

@@ -458,8 +458,8 @@ class Daemon:
             self._send_stop()
         elif self.safety.armed and result is not None:
             self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
-        if not conditions and dev.connected:
-            self._healthy_cycle.set()
+        if not conditions and dev.connected and not self._healthy_cycle.is_set():
+            self._healthy_cycle.set()  # once: Event.set takes a lock and notifies
         if self.sample_hook is not None and result is not None:
             self.sample_hook(self.core.sample(result, tick.index,
                                               (tick.deadline_ns - self._t0_ns) * 1e-9,

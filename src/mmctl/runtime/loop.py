@@ -12,6 +12,11 @@ fault.  Timings of every cycle go to a :class:`~mmctl.runtime.timing.TimingRing`
 
 An exception escaping the body stops the loop; it is stored in :attr:`CycleLoop.error`
 and re-raised by :meth:`CycleLoop.join`.
+
+:attr:`CycleLoop.plain_sleep` (benchmarks only) swaps the wait for a plain
+``time.sleep`` to each absolute deadline with the kernel's default timer slack, at the
+next cycle, so that ``mmctl bench loop`` can interleave windows of both waits on one
+running loop: same thread, same work, same machine state, only the wait differs.
 """
 
 from __future__ import annotations
@@ -57,6 +62,10 @@ Body = Callable[[Tick], None]
 
 
 _PR_SET_TIMERSLACK = 29
+DEFAULT_TIMER_SLACK_NS = 50_000
+"""Linux's timer slack for a normal thread [ns] (what a plain sleep loop gets)."""
+LOOP_TIMER_SLACK_NS = 1_000
+"""The loop thread's timer slack [ns]."""
 
 
 def set_timer_slack(ns: int) -> bool:
@@ -80,7 +89,7 @@ def apply_realtime(rt_priority: int, cpu_affinity: Sequence[int],
     """
     problems: list[str] = []
     if timer_slack:
-        set_timer_slack(1000)
+        set_timer_slack(LOOP_TIMER_SLACK_NS)
     if cpu_affinity:
         try:
             os.sched_setaffinity(0, set(cpu_affinity))
@@ -134,6 +143,8 @@ class CycleLoop:
         self._done = threading.Event()
         self._thread: threading.Thread | None = None
         self._reset_requested = False
+        self.plain_sleep = False
+        """Benchmarks: wait with a plain ``time.sleep`` (default timer slack, no spin)."""
         self.consecutive_misses = 0
         self.total_misses = 0
         self.cycles = 0
@@ -183,6 +194,15 @@ class CycleLoop:
             now = clock()
         return now
 
+    @staticmethod
+    def _sleep_until(deadline: int) -> int:
+        """The plain wait (:attr:`plain_sleep`): one ``time.sleep`` to the deadline."""
+        clock = time.perf_counter_ns
+        remaining = deadline - clock()
+        if remaining > 0:
+            time.sleep(remaining * 1e-9)
+        return clock()
+
     def _run(self) -> None:
         apply_realtime(self.rt_priority, self.cpu_affinity)
         clock = time.perf_counter_ns
@@ -190,9 +210,13 @@ class CycleLoop:
         ring = self.ring
         body = self._body
         deadline = clock() + period
+        plain = False
         try:
             while not self._stop.is_set():
-                wake = self._wait_until(deadline)
+                if self.plain_sleep is not plain:
+                    plain = self.plain_sleep
+                    set_timer_slack(DEFAULT_TIMER_SLACK_NS if plain else LOOP_TIMER_SLACK_NS)
+                wake = self._sleep_until(deadline) if plain else self._wait_until(deadline)
                 if self._reset_requested:
                     self._reset_requested = False
                     self.consecutive_misses = 0

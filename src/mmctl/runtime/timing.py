@@ -118,6 +118,17 @@ class TimingRing:
         return summarize(self.snapshot(last))
 
 
+def concat(snaps: list[TimingSnapshot]) -> TimingSnapshot:
+    """Several snapshots as one (rows in the given order; ``first_index`` of the first)."""
+    if not snaps:
+        empty = np.zeros(0, np.int64)
+        return TimingSnapshot(empty, empty, empty, empty, empty, 0)
+    def col(k: int) -> I64:
+        return np.concatenate([s[k] for s in snaps])
+
+    return TimingSnapshot(col(0), col(1), col(2), col(3), col(4), snaps[0].first_index)
+
+
 def summarize(s: TimingSnapshot) -> TimingStats:
     """Percentiles of compute time and wake latency, miss count and rate [us]."""
     n = len(s)

@@ -23,6 +23,7 @@ wheel revolution, so ``rad = counts * 2 pi / counts_per_rev``.
 from __future__ import annotations
 
 import math
+import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -61,6 +62,17 @@ _STARTUP_TIMEOUT = 2.0
 #: Receive-thread poll period; bounds how long close() waits for the thread [s].
 _NOTIFIER_CYCLE = 0.05
 _ZERO = np.zeros(4)
+_TARGET = struct.Struct("<i")  # RPDO1: target velocity 0x60FF, INTEGER32 [counts/s]
+
+
+def _rpdo1_cob_id(pdo: PdoMap) -> int:
+    """RPDO1's COB-ID, after checking it maps exactly the INTEGER32 target velocity
+    (what :meth:`CanopenBase._send_wheels` packs)."""
+    mapped = [(var.index, var.subindex, var.length) for var in pdo.map]
+    if mapped != [(ds.TARGET_VELOCITY, 0, 32)] or pdo.cob_id is None:
+        raise TransportError(f"RPDO1 must map only 0x{ds.TARGET_VELOCITY:04X} (32 bits), "
+                             f"got {mapped}")
+    return int(pdo.cob_id)
 
 
 def _parallel(fn: Callable[[int], T], n: int) -> list[T | BaseException]:
@@ -96,6 +108,7 @@ class CanopenBase:
         self._network: canopen.Network | None = None
         self._nodes: list[canopen.RemoteNode] = []
         self._rpdo: list[PdoMap] = []
+        self._rpdo_cob: list[int] = []
         self._hb_task: Any = None
         self._cond = threading.Condition()
         self._hb_time = [-math.inf] * self._n
@@ -146,6 +159,7 @@ class CanopenBase:
             self._raise_errors(_parallel(self._probe_one, self._n), "does not answer")
             self._raise_errors(_parallel(self._configure_one, self._n), "cannot be configured")
             self._rpdo = [node.rpdo[1] for node in self._nodes]
+            self._rpdo_cob = [_rpdo1_cob_id(pdo) for pdo in self._rpdo]
             for node in self._nodes:
                 node.nmt.state = "OPERATIONAL"
             self._wait_operational()
@@ -319,13 +333,18 @@ class CanopenBase:
         if net is None:
             raise TransportError("base is not connected (call connect() first)")
         k = self._counts_per_rad
+        send = net.send_message
         try:
-            for pdo, w in zip(self._rpdo, wheels):
-                pdo.map[0].raw = round(w * k)
-                pdo.transmit()
+            # RPDO1's bytes packed here: the mapping is ours (one INTEGER32, checked at
+            # connect), and canopen's per-variable encode costs ~4x the pack
+            for cob, w in zip(self._rpdo_cob, wheels):
+                send(cob, _TARGET.pack(round(w * k)))
             net.sync.transmit()
         except (can.CanError, RuntimeError) as exc:
             raise TransportError(f"CAN send failed on {self._co.channel!r}: {exc}") from exc
+        except struct.error:
+            raise SafetyFault(FaultCause.NON_FINITE, wheels=[float(w) for w in wheels],
+                              why="wheel speed beyond INTEGER32 counts/s") from None
 
     def _health(self) -> SafetyFault | None:
         if self._fault is not None:
@@ -508,3 +527,4 @@ class CanopenBase:
         net.disconnect()
         self._nodes = []
         self._rpdo = []
+        self._rpdo_cob = []
