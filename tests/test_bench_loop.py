@@ -4,12 +4,14 @@ are numbers, telemetry windows when asked.  Nothing about speed is asserted."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
 import yaml
 
 from mmctl.cli import main
+from mmctl.runtime.pmqos import DEVICE, current_limit
 
 ROOT = Path(__file__).resolve().parents[1]
 KEYS = {"compute_p50_us", "compute_p99_us", "compute_max_us", "latency_p50_us",
@@ -26,9 +28,14 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str,
     path = tmp_path / "bench.yaml"
     path.write_text(yaml.safe_dump(cfg))
     rc = main(["bench", "loop", "--seconds", "1", "--json", "--telemetry", "--config", str(path),
-               "--host", loopback_host])
+               "--host", loopback_host, "--cpu-dma-latency", "1500"])
     assert rc == 0
     rep = json.loads(capsys.readouterr().out)
+    # the daemon held the PM QoS request for the run (where this machine allows it) and
+    # withdrew it at shutdown
+    assert rep["cpu_dma_latency_us"] == (1500 if os.access(DEVICE, os.W_OK) else None)
+    assert current_limit() != 1500  # (another test's request may be in force meanwhile)
+    assert rep["windows"] == 10
     for key in ("loop", "sleep_baseline"):
         fig = rep[key]
         assert KEYS <= set(fig), key

@@ -38,6 +38,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="loopback address of the bench's fake UR (default 127.0.0.3)")
     p.add_argument("--rt-priority", type=int, metavar="N",
                    help="SCHED_FIFO priority of both loops (default: loop.rt_priority)")
+    p.add_argument("--cpu-dma-latency", type=int, metavar="US",
+                   help="PM QoS CPU wake-up latency held during the run [us]: 0 = idle CPUs "
+                   "poll instead of halting, -1 = no request (default: "
+                   "loop.cpu_dma_latency); needs write access to /dev/cpu_dma_latency")
     p.add_argument("--telemetry", action="store_true",
                    help="also time the daemon's loop with telemetry off vs on (a publisher "
                         "recording to a temporary .rrd) in alternating windows of the same "
@@ -70,6 +74,9 @@ def run(args: argparse.Namespace) -> int:
         raise MmctlError(f"--seconds {args.seconds:g}: must be > 0")
     if args.windows < 1:
         raise MmctlError(f"--windows {args.windows}: must be >= 1")
+    if args.cpu_dma_latency is not None and not -1 <= args.cpu_dma_latency <= 2_000_000:
+        raise MmctlError(f"--cpu-dma-latency {args.cpu_dma_latency}: must be -1 (no request) "
+                         "or 0..2000000 us")
     cfg: Any = load(args.config)
     n = int(args.seconds * cfg.loop.rate_hz) + 2000
     cfg = dataclasses.replace(
@@ -78,7 +85,10 @@ def run(args: argparse.Namespace) -> int:
         loop=dataclasses.replace(cfg.loop, timing_samples=n, max_consecutive_misses=10**9,
                                  max_total_misses=10**9,
                                  rt_priority=(cfg.loop.rt_priority if args.rt_priority is None
-                                              else args.rt_priority)),
+                                              else args.rt_priority),
+                                 cpu_dma_latency=(cfg.loop.cpu_dma_latency
+                                                  if args.cpu_dma_latency is None
+                                                  else args.cpu_dma_latency)),
         sim=dataclasses.replace(cfg.sim, enabled=True, human=True, auto_enable=False),
     )
     with _stdout_to_stderr():  # logs (ours and the fake UR process's) stay off stdout
@@ -121,6 +131,8 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
     try:
         daemon.open()
         daemon.start()
+        lat = daemon.cpu_latency
+        result["cpu_dma_latency_us"] = lat.us if lat is not None and lat.held else None
         daemon.call("tare")
         while daemon.core.taring:
             time.sleep(0.01)
@@ -195,10 +207,11 @@ def _step_window(step_ns: Any, first_cycle: int, count: int) -> Any:
 
 
 def _print_table(r: dict[str, Any]) -> None:
+    qos = "off" if r.get("cpu_dma_latency_us") is None else f"{r['cpu_dma_latency_us']} us"
     print(f"mmctl bench loop: {r['seconds']:g} s per wait in {r['windows']} alternating "
           f"windows each, at {r['rate_hz']:g} Hz on the simulated robot ({r['cpus']} CPUs, "
           f"load {r['loadavg_1min']:.2f}, SCHED_FIFO {r['rt_priority'] or 'off'}, spin "
-          f"{r['spin_margin_us']:g} us)")
+          f"{r['spin_margin_us']:g} us, CPU latency request {qos})")
     print(f"{'':22}{'compute p50/p99/max [us]':>28}{'step p50/p99':>16}"
           f"{'latency p50/p99/p99.9 [us]':>30}{'miss rate':>11}")
     for key, label in (("loop", "loop (sleep + spin)"), ("sleep_baseline", "time.sleep loop")):

@@ -19,6 +19,11 @@ class LoopConfig:
     max_total_misses: int = param(1000, gt=0, doc="total misses since enable -> fault")
     rt_priority: int = param(0, ge=0, le=99, doc="SCHED_FIFO priority; 0 = do not ask")
     cpu_affinity: tuple[int, ...] = param((), doc="CPUs to pin the loop thread to; () = any")
+    cpu_dma_latency: int = param(
+        -1, unit="us", ge=-1, le=2_000_000,
+        doc="PM QoS request held while the daemon runs (/dev/cpu_dma_latency): CPUs idle "
+        "only in states that wake within this time; 0 = never halt (poll); -1 = do not ask",
+    )
     switch_interval: float = param(
         0.0001, unit="s", gt=0.0, le=0.1,
         doc="Python GIL switch interval of the daemon: how long another thread may keep "

@@ -43,6 +43,7 @@ from mmctl.runtime.ipc import ControlServer, Peer
 from mmctl.runtime.logging import RateLimiter
 from mmctl.runtime.loop import CycleLoop, Tick
 from mmctl.runtime.notify import Notifier
+from mmctl.runtime.pmqos import CpuLatencyRequest
 from mmctl.runtime.safety import SafetyMonitor, SafetyState
 from mmctl.runtime.timing import TimingRing
 
@@ -111,6 +112,8 @@ class Daemon:
         self._status_text = ""
         self.commands_sent = {"speed_j": 0, "stop": 0, "twist": 0}
         self._limiter = RateLimiter(1.0)
+        self.cpu_latency = (CpuLatencyRequest(cfg.loop.cpu_dma_latency)
+                            if cfg.loop.cpu_dma_latency >= 0 else None)
 
     # ------------------------------------------------------------------ lifecycle --
     def open(self) -> None:
@@ -132,6 +135,8 @@ class Daemon:
     def start(self) -> None:
         """Start the loop and the control socket."""
         sys.setswitchinterval(self.cfg.loop.switch_interval)
+        if self.cpu_latency is not None:
+            self.cpu_latency.acquire()  # best effort: a warning when not permitted
         gc.collect()
         gc.freeze()  # start-up objects (models, fakes) out of every later collection
         self._t0_ns = time.perf_counter_ns()
@@ -203,6 +208,8 @@ class Daemon:
         self.devices.close()
         if self.sim is not None:
             self.sim.close()
+        if self.cpu_latency is not None:
+            self.cpu_latency.release()
         self.notifier.close()
         log.info("daemon_stopped", cycles=self.cycles, error=repr(self.loop.error)
                  if self.loop.error else None)
