@@ -111,11 +111,31 @@ def compare(cfg: Config, body_for: BodyFactory, seconds: float = 10.0, phases: i
     return _report(done)
 
 
-def _report(phases: list[Phase]) -> dict[str, Any]:
+def overlapping_misses(snap: TimingSnapshot, period_ns: int, starts: np.ndarray,
+                       ends: np.ndarray) -> int:
+    """How many of the snapshot's late cycles overlap a publisher work interval.
+
+    A cycle counts when one of ``[starts[k], ends[k]]`` [perf_counter ns] intersects
+    ``[its deadline - one period, its end]``: the publisher worked between the previous
+    deadline and the moment the late cycle finished, so it may have delayed it.  An
+    upper bound on the misses telemetry caused.
+    """
+    late = np.flatnonzero(snap.missed > 0)
+    n = 0
+    for i in late:
+        a = int(snap.deadline_ns[i]) - period_ns
+        b = int(snap.deadline_ns[i] + snap.latency_ns[i] + snap.compute_ns[i])
+        if np.any((starts < b) & (ends > a)):
+            n += 1
+    return n
+
+
+def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = None,
+            period_ns: int = 0) -> dict[str, Any]:
     s_off, s_on = _pool(phases, False), _pool(phases, True)
     growth = ((s_on.compute_p99_us - s_off.compute_p99_us) / s_off.compute_p99_us
               if s_off.cycles else 0.0)
-    return {
+    out = {
         "off": s_off.as_dict(),
         "on": s_on.as_dict(),
         "compute_p99_growth": round(growth, 4),
@@ -126,6 +146,12 @@ def _report(phases: list[Phase]) -> dict[str, Any]:
         "flush_max_us": max(p.flush_max_us for p in phases),
         "phases": len(phases),
     }
+    if busy is not None:
+        for key, on in (("misses_overlapping_publisher_off", False),
+                        ("misses_overlapping_publisher_on", True)):
+            out[key] = sum(overlapping_misses(p.snapshot, period_ns, *busy)
+                           for p in phases if p.telemetry is on)
+    return out
 
 
 def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
@@ -171,12 +197,13 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
         service.close()
         if pub.error is not None:
             raise pub.error
+        busy = pub.busy.intervals()
     finally:
         daemon.sample_hook = saved
         service.close()
         if tmp is not None:
             tmp.cleanup()
-    return _report(done)
+    return _report(done, busy, daemon.loop.period_ns)
 
 
 def format_report(r: dict[str, Any]) -> str:
@@ -193,4 +220,8 @@ def format_report(r: dict[str, Any]) -> str:
     lines.append(f"compute p99 growth with telemetry: {100 * r['compute_p99_growth']:+.1f} %; "
                  f"published {r['published']} samples, dropped {r['dropped']}, "
                  f"longest flush {r['flush_max_us']:.0f} us ({r['phases']} alternating phases)")
+    if "misses_overlapping_publisher_on" in r:
+        lines.append(f"late cycles overlapping the publisher's work: "
+                     f"{r['misses_overlapping_publisher_on']} of {r['misses_on']} (on), "
+                     f"{r['misses_overlapping_publisher_off']} of {r['misses_off']} (off)")
     return "\n".join(lines)

@@ -86,6 +86,8 @@ class Publisher:
         self.published = 0  #: samples handed to the sink
         self.batches = 0
         self.flush_ns_max = 0  #: longest flush so far [ns]
+        self.busy = BusyRing()
+        """When this thread ran its steps (between pacing points) [perf_counter ns]."""
         self._timing_next = -1
         period_ns = round(1e9 / loop_rate_hz)
         self.pacer = (LoopPacer(timing, period_ns, int(spin_margin_s * 1e9))
@@ -182,8 +184,16 @@ class Publisher:
 
     def flush(self) -> None:
         """Drain the queues into the sink once (the thread's body; tests may call it)."""
-        pace = self.pacer.wait if self.pacer is not None else _no_pace
-        pace()
+        wait = self.pacer.wait if self.pacer is not None else _no_pace
+        busy = self.busy
+
+        def pace() -> None:  # a pacing point: the step before it ends, the next begins after
+            busy.end()
+            wait()
+            busy.begin()
+
+        wait()
+        busy.begin()
         t0 = time.perf_counter_ns()
         samples = self.queue.drain()
         columns: list[Columns] = []
@@ -215,6 +225,7 @@ class Publisher:
             self.published += len(samples)
             self._progress.notify_all()
         self.flush_ns_max = max(self.flush_ns_max, time.perf_counter_ns() - t0)
+        busy.end()
 
     def _state_changes(self, samples: list[TelemetrySample]) -> list[Event]:
         """Text events where the mode or the safety state changed."""
@@ -251,6 +262,36 @@ class Publisher:
         values[:, 1] = snap.slack_ns * 1e-3
         values[:, 2] = snap.latency_ns * 1e-3
         return Columns(cycle, snap.deadline_ns - self.origin_ns, {layout.LOOP_TIMING.path: values})
+
+
+class BusyRing:
+    """The publisher thread's recent work intervals [perf_counter ns], preallocated; one
+    writer (the publisher thread), readers copy (:meth:`intervals`)."""
+
+    def __init__(self, size: int = 16384):
+        self.size = size
+        self._start = np.zeros(size, np.int64)
+        self._end = np.zeros(size, np.int64)
+        self._open = 0
+        self.count = 0
+
+    def begin(self) -> None:
+        self._open = time.perf_counter_ns()
+
+    def end(self) -> None:
+        if self._open:
+            i = self.count % self.size
+            self._start[i] = self._open
+            self._end[i] = time.perf_counter_ns()
+            self._open = 0
+            self.count += 1
+
+    def intervals(self) -> tuple[np.ndarray, np.ndarray]:
+        """(starts, ends) of the intervals the ring still holds, oldest first."""
+        n = self.count
+        k = min(n, self.size - 1)
+        idx = np.arange(n - k, n) % self.size
+        return self._start[idx].copy(), self._end[idx].copy()
 
 
 def _no_pace() -> None:

@@ -1,0 +1,46 @@
+"""Which late cycles overlap the telemetry publisher's work: synthetic timings with
+known answers, and the publisher's record of its own work intervals."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mmctl.runtime.timing import TimingSnapshot
+from mmctl.telemetry.overhead import overlapping_misses
+from mmctl.telemetry.publisher import BusyRing
+
+P = 2_000_000  # period [ns]
+
+
+def snap(rows: list[tuple[int, int, int, int]]) -> TimingSnapshot:
+    """rows of (deadline, latency, compute, missed) [ns]."""
+    a = np.array(rows, dtype=np.int64)
+    slack = np.zeros(len(rows), np.int64)
+    return TimingSnapshot(a[:, 0], a[:, 1], a[:, 2], slack, a[:, 3], 0)
+
+
+def test_only_late_cycles_whose_window_meets_an_interval_count() -> None:
+    s = snap([
+        (10 * P, 0, 3 * P, 1),          # late; window [9P, 13P]
+        (20 * P, 5 * P, 100_000, 2),    # late by its wake-up; window [19P, 25.05P]
+        (30 * P, 0, 3 * P, 1),          # late; nothing near it
+        (40 * P, 0, 100_000, 0),        # on time, overlapping: not counted
+    ])
+    starts = np.array([12 * P, 24 * P, 40 * P], np.int64)
+    ends = np.array([12 * P + 50_000, 24 * P + 50_000, 40 * P + 10], np.int64)
+    assert overlapping_misses(s, P, starts, ends) == 2
+    # an interval that ended exactly at the window's start does not overlap
+    assert overlapping_misses(s, P, np.array([8 * P]), np.array([9 * P])) == 0
+    assert overlapping_misses(s, P, np.zeros(0, np.int64), np.zeros(0, np.int64)) == 0
+
+
+def test_busy_ring_keeps_closed_intervals_in_order() -> None:
+    ring = BusyRing(size=4)
+    ring.end()  # nothing open: nothing recorded
+    for _ in range(6):
+        ring.begin()
+        ring.end()
+    starts, ends = ring.intervals()
+    assert ring.count == 6
+    assert len(starts) == 3  # size - 1 kept (the slot being written is never read)
+    assert np.all(ends >= starts) and np.all(np.diff(starts) >= 0)
