@@ -20,18 +20,19 @@ def snap(rows: list[tuple[int, int, int, int]]) -> TimingSnapshot:
 
 
 def test_only_late_cycles_whose_window_meets_an_interval_count() -> None:
+    lead = 300_000  # the loop wakes this long before its deadline [ns]
     s = snap([
-        (10 * P, 0, 3 * P, 1),          # late; window [9P, 13P]
-        (20 * P, 5 * P, 100_000, 2),    # late by its wake-up; window [19P, 25.05P]
-        (30 * P, 0, 3 * P, 1),          # late; nothing near it
+        (10 * P, 0, 3 * P, 1),          # late; window [10P - lead, 13P]
+        (20 * P, 5 * P, 100_000, 2),    # late by its wake-up; window [20P - lead, 25.05P]
+        (30 * P, 0, 3 * P, 1),          # late; the publisher worked only in the idle time
         (40 * P, 0, 100_000, 0),        # on time, overlapping: not counted
     ])
-    starts = np.array([12 * P, 24 * P, 40 * P], np.int64)
-    ends = np.array([12 * P + 50_000, 24 * P + 50_000, 40 * P + 10], np.int64)
-    assert overlapping_misses(s, P, starts, ends) == 2
-    # an interval that ended exactly at the window's start does not overlap
-    assert overlapping_misses(s, P, np.array([8 * P]), np.array([9 * P])) == 0
-    assert overlapping_misses(s, P, np.zeros(0, np.int64), np.zeros(0, np.int64)) == 0
+    starts = np.array([12 * P, 24 * P, 29 * P, 40 * P], np.int64)
+    ends = np.array([12 * P + 50_000, 24 * P + 50_000, 30 * P - lead, 40 * P + 10], np.int64)
+    assert overlapping_misses(s, lead, starts, ends) == 2
+    # the idle-time work before cycle 3 counts once the window reaches back to it
+    assert overlapping_misses(s, P, starts, ends) == 3
+    assert overlapping_misses(s, lead, np.zeros(0, np.int64), np.zeros(0, np.int64)) == 0
 
 
 def test_busy_ring_keeps_closed_intervals_in_order() -> None:

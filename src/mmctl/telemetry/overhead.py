@@ -111,19 +111,21 @@ def compare(cfg: Config, body_for: BodyFactory, seconds: float = 10.0, phases: i
     return _report(done)
 
 
-def overlapping_misses(snap: TimingSnapshot, period_ns: int, starts: np.ndarray,
+def overlapping_misses(snap: TimingSnapshot, lead_ns: int, starts: np.ndarray,
                        ends: np.ndarray) -> int:
     """How many of the snapshot's late cycles overlap a publisher work interval.
 
     A cycle counts when one of ``[starts[k], ends[k]]`` [perf_counter ns] intersects
-    ``[its deadline - one period, its end]``: the publisher worked between the previous
-    deadline and the moment the late cycle finished, so it may have delayed it.  An
-    upper bound on the misses telemetry caused.
+    ``[its deadline - lead_ns, its end]``: the publisher was working while the loop
+    woke up (the loop's sleep ends ``lead_ns``, its spin margin, before the deadline)
+    or ran the late cycle, so it may have delayed it.  Work in the idle time before
+    that is what the publisher is paced into and does not count.  An upper bound on
+    the misses telemetry caused.
     """
     late = np.flatnonzero(snap.missed > 0)
     n = 0
     for i in late:
-        a = int(snap.deadline_ns[i]) - period_ns
+        a = int(snap.deadline_ns[i]) - lead_ns
         b = int(snap.deadline_ns[i] + snap.latency_ns[i] + snap.compute_ns[i])
         if np.any((starts < b) & (ends > a)):
             n += 1
@@ -131,7 +133,7 @@ def overlapping_misses(snap: TimingSnapshot, period_ns: int, starts: np.ndarray,
 
 
 def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = None,
-            period_ns: int = 0) -> dict[str, Any]:
+            lead_ns: int = 0) -> dict[str, Any]:
     s_off, s_on = _pool(phases, False), _pool(phases, True)
     growth = ((s_on.compute_p99_us - s_off.compute_p99_us) / s_off.compute_p99_us
               if s_off.cycles else 0.0)
@@ -149,7 +151,7 @@ def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = No
     if busy is not None:
         for key, on in (("misses_overlapping_publisher_off", False),
                         ("misses_overlapping_publisher_on", True)):
-            out[key] = sum(overlapping_misses(p.snapshot, period_ns, *busy)
+            out[key] = sum(overlapping_misses(p.snapshot, lead_ns, *busy)
                            for p in phases if p.telemetry is on)
     return out
 
@@ -203,7 +205,7 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
         service.close()
         if tmp is not None:
             tmp.cleanup()
-    return _report(done, busy, daemon.loop.period_ns)
+    return _report(done, busy, daemon.loop.spin_margin_ns)
 
 
 def format_report(r: dict[str, Any]) -> str:
