@@ -126,6 +126,35 @@ def test_connect_and_read_exact_bytes_on_the_wire() -> None:
     assert w.sequence == 2 and w.status == 0
 
 
+def test_caller_paced_requests_go_out_only_when_asked() -> None:
+    """After the first request_next(), a decoded reply sends nothing by itself; each
+    request_next() sends one request unless one is in flight; read() alone still works."""
+    ch, base = channel(), 0x22
+    requests, replies = calibration_script(base)
+    sg = [(10 * k, 0, 0, 0, 0, 0) for k in range(1, 5)]
+    gauge_req = (base << 4 | 0x0, b"")
+    # connect's read, connect's pipelined request, then three caller-paced requests
+    script = replies + [gauge_frames(base, 0, g) for g in sg]
+    peer = ScriptedPeer(ch, script)
+    peer.start()
+    sensor = CanForceSensor(can_cfg(ch, base_id=base, timeout=2.0, connect_timeout=5.0),
+                            stale_timeout=10.0)
+    try:
+        sensor.connect()
+        sensor.request_next()  # the connect's pipelined request is still in flight: no-op
+        w1 = sensor.read()  # its reply; nothing sent after it
+        sensor.request_next()  # one request
+        sensor.request_next()  # in flight: nothing
+        w2 = sensor.read()
+        w3 = sensor.read()  # no request in flight: read() sends one and waits
+    finally:
+        sensor.close()
+        peer.finish()
+    assert peer.seen == requests + [gauge_req] * 4
+    assert (w1.sequence, w2.sequence, w3.sequence) == (2, 3, 4)
+    assert w3.force[0] == pytest.approx(MATRIX[0, 0] * 40 / CPF)
+
+
 def test_non_si_units_are_refused_with_a_clear_message() -> None:
     ch = channel()
     _, replies = calibration_script(0x20, units=b"\x01\x01")

@@ -114,6 +114,10 @@ class Daemon:
         self._limiter = RateLimiter(1.0)
         self.cpu_latency = (CpuLatencyRequest(cfg.loop.cpu_dma_latency)
                             if cfg.loop.cpu_dma_latency >= 0 else None)
+        #: a request/reply sensor's "ask for the next sample" (CAN), sent at the end of
+        #: each cycle so the answer comes in the loop's idle time; None: it streams
+        self._sensor_request: Callable[[], None] | None = getattr(
+            devices.sensor, "request_next", None)
 
     # ------------------------------------------------------------------ lifecycle --
     def open(self) -> None:
@@ -473,6 +477,13 @@ class Daemon:
                                               self.safety.state.value))
         if stop_now:
             self._update_status()
+        if self._sensor_request is not None:
+            try:
+                self._sensor_request()
+            except TransportError as exc:  # the next read finds no reply: stale, a fault
+                suppressed = self._limiter.allow("sensor_request_failed")
+                if suppressed is not None:
+                    log.warning("sensor_request_failed", error=str(exc), suppressed=suppressed)
 
     def _send_motion(self, r: CycleResult, base: bool = True) -> None:
         """speedJ, then (every ``loop.base_divider``-th cycle: ``base``) the base twist

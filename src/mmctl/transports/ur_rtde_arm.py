@@ -102,6 +102,9 @@ class UrRtdeArm:
         self._last_time = math.nan
         self._stale = 0
         self._healthy = False
+        self._ctrl_checked: bool | None = None
+        """The control link's state as the newest read_state saw it, for the next speed_j
+        (None: speed_j asks ur_rtde itself)."""
         self.last_state: ArmState | None = None
         """The newest sample read, also when read_state raised on it."""
         self.controller_version = ""
@@ -158,6 +161,7 @@ class UrRtdeArm:
             raise TransportError(f"{host}: ur_rtde control interface: {exc}") from None
         self._ctrl, self._recv = ctrl, recv
         self._last_time, self._stale, self._healthy = math.nan, 0, True
+        self._ctrl_checked = None
         log.info("arm_connected", host=host, controller_version=version,
                  frequency=self.config.frequency)
 
@@ -221,6 +225,7 @@ class UrRtdeArm:
             self._stale += 1
         self._healthy = False
         control, receive = self._ctrl.isConnected(), self._recv.isConnected()
+        self._ctrl_checked = control  # speed_j's check, once (each call releases the GIL)
         if not (control and receive):
             raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host,
                               control=control, receive=receive)
@@ -242,7 +247,8 @@ class UrRtdeArm:
         [rad/s^2] (default ``arm.speedj_acceleration``, capped at 40); dt [s] (default
         one period).  Returns ur_rtde's answer, which says nothing about the link's
         health.  Non-finite input raises SafetyFault(NON_FINITE) and sends nothing."""
-        if self._ctrl is None or not self._ctrl.isConnected():
+        checked, self._ctrl_checked = self._ctrl_checked, None
+        if self._ctrl is None or not (self._ctrl.isConnected() if checked is None else checked):
             raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host, why="not connected")
         v = [float(x) for x in qd]
         a = self.config.speedj_acceleration if acceleration is None else float(acceleration)

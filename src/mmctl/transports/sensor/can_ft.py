@@ -35,10 +35,11 @@ high / too low" bits — set it from your unit's manual) and any gauge at the in
 ``SafetyFault(SENSOR_STATUS)``.
 
 Timing (why a read is cheap): reads are *pipelined*.  After a reply is decoded, the next
-request goes out at once, so the sensor answers while the control cycle computes and the
-next :meth:`CanForceSensor.read` normally finds both reply frames already queued (the
-sample is then up to one period old, 2 ms at 500 Hz, against a 53 ms admittance time
-constant).  When the request in flight is older than ``sensor.can.timeout`` (the caller
+request goes out at once — or, once the caller uses :meth:`CanForceSensor.request_next`
+(the daemon does, at the end of each cycle), when the caller sends it — so the sensor
+answers before the next :meth:`CanForceSensor.read`, which normally finds both reply
+frames already queued (the sample is then up to one period old, 2 ms at 500 Hz, against
+a 53 ms admittance time constant).  When the request in flight is older than ``sensor.can.timeout`` (the caller
 paused), its reply would be too old: it is discarded and a fresh request is waited for.
 A request that gets no complete reply within ``timeout`` counts as lost and is sent
 again at once; the previous sample is returned again until the newest one is older than
@@ -178,6 +179,7 @@ class CanForceSensor:
         self._counts = (0, 0)
         self._bias = np.zeros(6)
         self._pending: float | None = None  # monotonic time the request in flight was sent
+        self._caller_paced = False  # request_next() was called: it sends the requests
         self._first: bytes | None = None  # gauge frame 1 waiting for frame 2
         self._last: Wrench | None = None
         self._last_fresh = 0.0
@@ -293,10 +295,29 @@ class CanForceSensor:
 
     # -- internals ---------------------------------------------------------------------
 
+    def request_next(self) -> None:
+        """Send the next gauge request now, unless one is in flight.
+
+        The first call hands the pipelining to the caller: from then on a decoded reply
+        no longer sends the next request at once, the caller does, when it likes.  The
+        daemon calls this at the end of each cycle, so the sensor's answer (on the
+        simulated robot: a thread of this process) comes in the loop's idle time
+        instead of during its compute.  ``read()`` alone still works: with no request
+        in flight it sends one and waits for the reply.
+        """
+        if self._bus is None:
+            raise TransportError(f"CAN F/T sensor {self.link} is not connected")
+        self._caller_paced = True
+        if self._pending is None:
+            self._send_request(time.monotonic())
+
     def _accept(self, sample: tuple[int, Vec]) -> Wrench:
         status, gauges = sample
         t = time.monotonic()
-        self._send_request(t)  # pipeline: the sensor answers while the cycle computes
+        if self._caller_paced:
+            self._pending = None  # answered; request_next() sends the next one
+        else:
+            self._send_request(t)  # pipeline: the sensor answers while the cycle computes
         check_status(status, gauges, self._sat_mask)
         w = self._conv @ gauges - self._bias
         self._seq += 1
