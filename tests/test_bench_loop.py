@@ -47,5 +47,6 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str,
     assert tel["phases"] == 10 and tel["off"]["cycles"] > 0 and tel["on"]["cycles"] > 0
     assert tel["published"] > 0  # the "on" windows' samples reached the recording
     assert 0 <= tel["misses_overlapping_publisher_on"] <= tel["misses_on"]
+    assert 0.0 < tel["hook_p50_us"] <= tel["hook_p99_us"]  # the hook ran in the "on" windows
     assert 0 <= tel["misses_overlapping_publisher_off"] <= tel["misses_off"]
     assert rep["targets"]["compute_p99_us"] == 300.0

@@ -87,6 +87,9 @@ class Daemon:
         #: time spent in the pure control chain (ControlCore.step) per cycle, indexed by
         #: cycle % size [ns]: the part of the compute time that is not device I/O
         self.step_ns = np.zeros(cfg.loop.timing_samples, np.int64)
+        #: time spent in the telemetry sample hook (build the sample, queue it) per cycle,
+        #: indexed like ``step_ns`` [ns]; 0 when no hook ran: telemetry's own loop cost
+        self.hook_ns = np.zeros(cfg.loop.timing_samples, np.int64)
         self.loop = CycleLoop(
             self.cycle, rate_hz=cfg.loop.rate_hz, spin_margin=cfg.loop.spin_margin,
             max_consecutive_misses=cfg.loop.max_consecutive_misses,
@@ -471,10 +474,12 @@ class Daemon:
             self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
         if not conditions and dev.connected and not self._healthy_cycle.is_set():
             self._healthy_cycle.set()  # once: Event.set takes a lock and notifies
-        if self.sample_hook is not None and result is not None:
-            self.sample_hook(self.core.sample(result, tick.index,
-                                              (tick.deadline_ns - self._t0_ns) * 1e-9,
-                                              self.safety.state.value))
+        hook = self.sample_hook
+        if hook is not None and result is not None:
+            t0 = time.perf_counter_ns()
+            hook(self.core.sample(result, tick.index, (tick.deadline_ns - self._t0_ns) * 1e-9,
+                                  self.safety.state.value))
+            self.hook_ns[self.cycles % self.hook_ns.shape[0]] = time.perf_counter_ns() - t0
         if stop_now:
             self._update_status()
         if self._sensor_request is not None:

@@ -132,8 +132,14 @@ def overlapping_misses(snap: TimingSnapshot, lead_ns: int, starts: np.ndarray,
     return n
 
 
+def _window(per_cycle: np.ndarray, snap: TimingSnapshot) -> np.ndarray:
+    """The rows of a per-cycle array (indexed by cycle % size) for a snapshot's cycles."""
+    idx = np.arange(snap.first_index, snap.first_index + len(snap)) % per_cycle.shape[0]
+    return per_cycle[idx]
+
+
 def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = None,
-            lead_ns: int = 0) -> dict[str, Any]:
+            lead_ns: int = 0, hook_ns: np.ndarray | None = None) -> dict[str, Any]:
     s_off, s_on = _pool(phases, False), _pool(phases, True)
     growth = ((s_on.compute_p99_us - s_off.compute_p99_us) / s_off.compute_p99_us
               if s_off.cycles else 0.0)
@@ -148,6 +154,13 @@ def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = No
         "flush_max_us": max(p.flush_max_us for p in phases),
         "phases": len(phases),
     }
+    if hook_ns is not None:
+        on_hook = np.concatenate([_window(hook_ns, p.snapshot) for p in phases if p.telemetry]
+                                 + [np.zeros(0, np.int64)]) / 1e3
+        on_hook = on_hook[on_hook > 0]
+        if on_hook.size:
+            out["hook_p50_us"] = round(float(np.percentile(on_hook, 50)), 2)
+            out["hook_p99_us"] = round(float(np.percentile(on_hook, 99)), 2)
     if busy is not None:
         for key, on in (("misses_overlapping_publisher_off", False),
                         ("misses_overlapping_publisher_on", True)):
@@ -205,7 +218,7 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
         service.close()
         if tmp is not None:
             tmp.cleanup()
-    return _report(done, busy, daemon.loop.spin_margin_ns)
+    return _report(done, busy, daemon.loop.spin_margin_ns, daemon.hook_ns)
 
 
 def format_report(r: dict[str, Any]) -> str:
@@ -222,6 +235,9 @@ def format_report(r: dict[str, Any]) -> str:
     lines.append(f"compute p99 growth with telemetry: {100 * r['compute_p99_growth']:+.1f} %; "
                  f"published {r['published']} samples, dropped {r['dropped']}, "
                  f"longest flush {r['flush_max_us']:.0f} us ({r['phases']} alternating phases)")
+    if "hook_p99_us" in r:
+        lines.append(f"the loop's own telemetry work (sample + queue): p50 {r['hook_p50_us']:.1f} "
+                     f"us, p99 {r['hook_p99_us']:.1f} us per cycle")
     if "misses_overlapping_publisher_on" in r:
         lines.append(f"late cycles overlapping the publisher's work: "
                      f"{r['misses_overlapping_publisher_on']} of {r['misses_on']} (on), "
