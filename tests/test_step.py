@@ -118,6 +118,8 @@ def test_outputs_are_consistent(ctl: Controller) -> None:
     assert np.array_equal(out.base_twist, out.qdot[6:])
     assert out.v_d.shape == (6,) and out.p.shape == (3,) and out.p_des.shape == (3,)
     assert np.allclose(out.v_d, state.v)
+    # the measured end-effector twist is J(q) times the measured velocities
+    assert np.allclose(out.v, ctl.model.jacobian(q) @ outs[-2].qdot, atol=1e-12)
     assert out.energy_cmd.total == pytest.approx(out.energy_cmd.arm + out.energy_cmd.base)
     assert 0.0 < out.scale <= 1.0 and 0.0 < out.accel_scale <= 1.0
     # measured energy uses the measured velocities given as input (here the previous command)

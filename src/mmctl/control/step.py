@@ -125,7 +125,9 @@ class StepOutputs(NamedTuple):
     of the IDK output (s_v * s_f, 1 = unlimited); accel_scale: acceleration blend s_a;
     p: (3,) tool position in the world [m]; p_des: (3,) FK(q_des) with the base at its
     current pose (so |p - p_des| is the paper's x_f); condition: condition number of
-    J J^T; fault: the cause when the cycle was refused, else None.
+    J J^T; fault: the cause when the cycle was refused, else None; v: (6,) the measured
+    end-effector twist J(q) qdot_measured, control frame [m/s, rad/s] (zeros when
+    refused).
     """
 
     v_d: Vec
@@ -140,6 +142,7 @@ class StepOutputs(NamedTuple):
     p_des: Vec
     condition: float
     fault: FaultCause | None
+    v: Vec = np.zeros(6)
 
 
 def _target(mode: Mode, switch: SwitchMode) -> str:
@@ -286,7 +289,7 @@ class Controller:
         new = ControllerState(v_d, qdot, state.mode, state.switch, weights,  # type: ignore[arg-type]
                               state.cycle + 1)
         out = StepOutputs(v_d, qdot, qdot[:6], qdot[6:], e_meas, e_cmd, lim.scale * lim.final_scale,
-                          lim.accel_scale, kin.p, p_des, cond, None)
+                          lim.accel_scale, kin.p, p_des, cond, None, J @ qd_meas)
         return new, out
 
     # --- helpers for the simulator and tests -----------------------------------

@@ -165,8 +165,11 @@ class ControlCore:
 
         q = r.q
         c, s = math.cos(q[8]), math.sin(q[8])
-        jac = self.model.jacobian(q) if math.isfinite(float(q @ q)) else np.zeros((6, 9))
-        v = jac @ r.qd
+        if r.out is not None:  # the step's own J(q) qdot: no second Jacobian on the loop
+            v = r.out.v
+        else:
+            jac = self.model.jacobian(q) if math.isfinite(float(q @ q)) else np.zeros((6, 9))
+            v = jac @ r.qd
         dp, dpd = r.p - np.array([q[6], q[7], 0.0]), r.p_des - np.array([q[6], q[7], 0.0])
         p_base = np.array([c * dp[0] + s * dp[1], -s * dp[0] + c * dp[1], dp[2]])
         pd_base = np.array([c * dpd[0] + s * dpd[1], -s * dpd[0] + c * dpd[1], dpd[2]])
