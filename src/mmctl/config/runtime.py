@@ -13,7 +13,10 @@ class LoopConfig:
 
     rate_hz: float = param(500.0, unit="Hz", gt=0.0, le=2000.0)
     spin_margin: float = param(
-        0.0003, unit="s", ge=0.0, doc="sleep until this long before the deadline, then spin"
+        0.0001, unit="s", ge=0.0,
+        doc="sleep until this long before the deadline, then spin (holding the interpreter: "
+        "100 us keeps wake latency p99 ~15 us with a 1 us timer slack; 300 us measured "
+        "compute p99 15 % worse, the other threads' work pushed into the cycle)",
     )
     max_consecutive_misses: int = param(5, gt=0, doc="consecutive deadline misses -> fault")
     max_total_misses: int = param(1000, gt=0, doc="total misses since enable -> fault")

@@ -119,7 +119,7 @@ class CycleLoop:
         self,
         body: Body,
         rate_hz: float = 500.0,
-        spin_margin: float = 0.0003,
+        spin_margin: float = 0.0001,
         max_consecutive_misses: int = 5,
         max_total_misses: int = 1000,
         ring: TimingRing | None = None,

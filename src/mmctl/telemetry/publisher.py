@@ -69,7 +69,7 @@ class Publisher:
 
     def __init__(self, sink: Sink, *, loop_rate_hz: float = 500.0, plot_rate_hz: float = 100.0,
                  scene_rate_hz: float = 15.0, queue_size: int = 4096, timing: Any = None,
-                 origin_ns: int = 0, scene: Scene | None = None, spin_margin_s: float = 0.0003,
+                 origin_ns: int = 0, scene: Scene | None = None, spin_margin_s: float = 0.0001,
                  pace: bool = True):
         if scene_rate_hz <= 0 or plot_rate_hz <= 0 or loop_rate_hz <= 0:
             raise ValueError("rates must be > 0")
