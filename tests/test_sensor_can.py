@@ -91,6 +91,16 @@ def gauge_frames(base: int, status: int, sg: tuple[int, ...]) -> list[tuple[int,
             (b | 0x1, struct.pack(">hhh", sg[1], sg[3], sg[5]))]
 
 
+def scripted_sensor(ch: str, base: int, script: list) -> tuple[ScriptedPeer, CanForceSensor]:
+    """A started scripted peer and a (not yet connected) client for it."""
+    peer = ScriptedPeer(ch, script)
+    peer.start()
+    # generous reply timeout: the pipelined request stays valid on a loaded machine
+    sensor = CanForceSensor(can_cfg(ch, base_id=base, timeout=2.0, connect_timeout=5.0),
+                            stale_timeout=10.0)
+    return peer, sensor
+
+
 def test_frame_ids_follow_the_base_id_layout() -> None:
     assert frame_id(0x20, 0x0) == 0x200
     assert frame_id(0x20, 0x7) == 0x207
@@ -104,11 +114,7 @@ def test_connect_and_read_exact_bytes_on_the_wire() -> None:
     sg2 = (1000, 2000, -3000, 4000, -5000, 6000)
     gauge_req = (base << 4 | 0x0, b"")
     script = replies + [gauge_frames(base, 0, sg1), gauge_frames(base, 0, sg2), []]
-    peer = ScriptedPeer(ch, script)
-    peer.start()
-    # generous reply timeout: the pipelined request stays valid on a loaded machine
-    sensor = CanForceSensor(can_cfg(ch, base_id=base, timeout=2.0, connect_timeout=5.0),
-                            stale_timeout=10.0)
+    peer, sensor = scripted_sensor(ch, base, script)
     try:
         sensor.connect()
         w = sensor.read()
@@ -133,12 +139,8 @@ def test_caller_paced_requests_go_out_only_when_asked() -> None:
     requests, replies = calibration_script(base)
     sg = [(10 * k, 0, 0, 0, 0, 0) for k in range(1, 5)]
     gauge_req = (base << 4 | 0x0, b"")
-    # connect's read, connect's pipelined request, then three caller-paced requests
-    script = replies + [gauge_frames(base, 0, g) for g in sg]
-    peer = ScriptedPeer(ch, script)
-    peer.start()
-    sensor = CanForceSensor(can_cfg(ch, base_id=base, timeout=2.0, connect_timeout=5.0),
-                            stale_timeout=10.0)
+    # connect's read, connect's pipelined request, one request_next(), read()'s own
+    peer, sensor = scripted_sensor(ch, base, replies + [gauge_frames(base, 0, g) for g in sg])
     try:
         sensor.connect()
         sensor.request_next()  # the connect's pipelined request is still in flight: no-op
