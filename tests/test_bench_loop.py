@@ -50,3 +50,16 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str,
     assert 0.0 < tel["hook_p50_us"] <= tel["hook_p99_us"]  # the hook ran in the "on" windows
     assert 0 <= tel["misses_overlapping_publisher_off"] <= tel["misses_off"]
     assert rep["targets"]["compute_p99_us"] == 300.0
+
+
+def test_verdict_names_each_target_met_or_not_and_against_sleep() -> None:
+    from mmctl.commands.bench_loop import TARGETS, verdict
+
+    loop = {"compute_p99_us": 541.0, "latency_p99_us": 14.0, "miss_rate": 0.001}
+    sleep = {"compute_p99_us": 626.0, "latency_p99_us": 76.0, "miss_rate": 0.0009}
+    lines = verdict({"targets": TARGETS, "loop": loop, "sleep_baseline": sleep}).splitlines()
+    assert lines == [
+        "target compute p99 < 300 us: 541 us, NOT met; better than the time.sleep wait (626 us)",
+        "target wake latency p99 < 100 us: 14 us, met; better than the time.sleep wait (76 us)",
+        "target miss rate < 0.5 %: 0.1 %, met; not better than the time.sleep wait (0.09 %)",
+    ]

@@ -225,6 +225,19 @@ def _print_table(r: dict[str, Any]) -> None:
 
         print(f"\ntelemetry off vs on (daemon loop, alternating {r['seconds'] / 10:g} s windows):")
         print(format_report(r["telemetry"]))
-    t = r["targets"]
-    print(f"targets: compute p99 < {t['compute_p99_us']:g} us, wake latency p99 < "
-          f"{t['latency_p99_us']:g} us, miss rate < {100 * t['miss_rate']:g} %")
+    print(verdict(r))
+
+
+def verdict(r: dict[str, Any]) -> str:
+    """One line per target: the loop's figure, met or not, and against the sleep wait."""
+    t, loop, base = r["targets"], r["loop"], r["sleep_baseline"]
+    lines = []
+    for key, label, unit, scale in (("compute_p99_us", "compute p99", "us", 1.0),
+                                    ("latency_p99_us", "wake latency p99", "us", 1.0),
+                                    ("miss_rate", "miss rate", "%", 100.0)):
+        mine, other, goal = loop[key] * scale, base[key] * scale, t[key] * scale
+        met = "met" if mine < goal else "NOT met"
+        than = "better than" if mine < other else "not better than"
+        lines.append(f"target {label} < {goal:g} {unit}: {mine:.3g} {unit}, {met}; {than} "
+                     f"the time.sleep wait ({other:.3g} {unit})")
+    return "\n".join(lines)
