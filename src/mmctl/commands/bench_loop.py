@@ -69,14 +69,15 @@ def run(args: argparse.Namespace) -> int:
     from mmctl.errors import MmctlError
     from mmctl.runtime.client import load
     from mmctl.runtime.logging import setup_logging
+    from mmctl.runtime.pmqos import MAX_US
 
     if args.seconds <= 0:
         raise MmctlError(f"--seconds {args.seconds:g}: must be > 0")
     if args.windows < 1:
         raise MmctlError(f"--windows {args.windows}: must be >= 1")
-    if args.cpu_dma_latency is not None and not -1 <= args.cpu_dma_latency <= 2_000_000:
+    if args.cpu_dma_latency is not None and not -1 <= args.cpu_dma_latency <= MAX_US:
         raise MmctlError(f"--cpu-dma-latency {args.cpu_dma_latency}: must be -1 (no request) "
-                         "or 0..2000000 us")
+                         f"or 0..{MAX_US} us")
     cfg: Any = load(args.config)
     n = int(args.seconds * cfg.loop.rate_hz) + 2000
     cfg = dataclasses.replace(
@@ -166,7 +167,9 @@ def _interleaved(daemon: Any, seconds: float, windows: int
     """``windows`` pairs of windows of ``seconds / windows``: the loop's wait, then the
     plain sleep (:attr:`~mmctl.runtime.loop.CycleLoop.plain_sleep`); pooled figures of
     each.  The first cycles after a switch (``_SETTLE``) are not counted."""
-    from mmctl.runtime.timing import concat
+    import numpy as np
+
+    from mmctl.runtime.timing import concat, cycle_rows
 
     loop, ring = daemon.loop, daemon.ring
     window = seconds / windows
@@ -183,27 +186,13 @@ def _interleaved(daemon: Any, seconds: float, windows: int
         loop.plain_sleep = False
     out = []
     for plain in (False, True):
-        steps = [_step_window(daemon.step_ns, s.first_index, len(s)) for s in snaps[plain]]
-        out.append(_figures(concat(snaps[plain]), _concat_arrays(steps)))
+        steps = np.concatenate([cycle_rows(daemon.step_ns, s) for s in snaps[plain]]) / 1e3
+        out.append(_figures(concat(snaps[plain]), steps[steps > 0]))
     return out[0], out[1]
 
 
 _SETTLE = 0.05
 """[s] after a switch of the wait, not counted (the switch lands at the next cycle)."""
-
-
-def _concat_arrays(parts: list[Any]) -> Any:
-    import numpy as np
-
-    return np.concatenate(parts) if parts else np.zeros(0)
-
-
-def _step_window(step_ns: Any, first_cycle: int, count: int) -> Any:
-    import numpy as np
-
-    idx = np.arange(first_cycle, first_cycle + count) % step_ns.shape[0]
-    vals = step_ns[idx] / 1e3
-    return vals[vals > 0]
 
 
 def _print_table(r: dict[str, Any]) -> None:

@@ -142,7 +142,7 @@ class StepOutputs(NamedTuple):
     p_des: Vec
     condition: float
     fault: FaultCause | None
-    v: Vec = np.zeros(6)
+    v: Vec
 
 
 def _target(mode: Mode, switch: SwitchMode) -> str:
@@ -235,7 +235,8 @@ class Controller:
                weights: tuple[float, ...]) -> tuple[ControllerState, StepOutputs]:
         new = dataclasses.replace(state, v=_Z6, qdot=_Z9, weights=weights,  # type: ignore[arg-type]
                                   cycle=state.cycle + 1)
-        out = StepOutputs(_Z6, _Z9, _Z6, _Z3, _ZERO_E, _ZERO_E, 0.0, 0.0, _Z3, _Z3, cond, cause)
+        out = StepOutputs(_Z6, _Z9, _Z6, _Z3, _ZERO_E, _ZERO_E, 0.0, 0.0, _Z3, _Z3, cond, cause,
+                          _Z6)
         return new, out
 
     def step(self, state: ControllerState, inp: StepInputs) -> tuple[ControllerState, StepOutputs]:

@@ -27,6 +27,8 @@ if TYPE_CHECKING:  # typing.Self is 3.11+; the package supports 3.10
 log = structlog.get_logger("mmctl.pmqos")
 
 DEVICE = Path("/dev/cpu_dma_latency")
+MAX_US = 2_000_000
+"""The largest request value accepted here [us] (2 s: no constraint in practice)."""
 
 
 class CpuLatencyRequest:
@@ -37,8 +39,8 @@ class CpuLatencyRequest:
     """
 
     def __init__(self, us: int, path: Path = DEVICE):
-        if not 0 <= us <= 2_000_000:
-            raise ValueError(f"us must be in [0, 2000000], got {us}")
+        if not 0 <= us <= MAX_US:
+            raise ValueError(f"us must be in [0, {MAX_US}], got {us}")
         self.us = us
         self.path = Path(path)
         self._fd: int | None = None

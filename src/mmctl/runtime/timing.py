@@ -118,6 +118,13 @@ class TimingRing:
         return summarize(self.snapshot(last))
 
 
+def cycle_rows(per_cycle: NDArray[np.generic], snap: TimingSnapshot) -> NDArray[np.generic]:
+    """The entries of a per-cycle array indexed by ``cycle % its size`` (the daemon's
+    ``step_ns``, ``hook_ns``) for the snapshot's cycles, in the snapshot's order."""
+    idx = np.arange(snap.first_index, snap.first_index + len(snap)) % per_cycle.shape[0]
+    return per_cycle[idx]
+
+
 def concat(snaps: list[TimingSnapshot]) -> TimingSnapshot:
     """Several snapshots as one (rows in the given order; ``first_index`` of the first)."""
     if not snaps:

@@ -26,7 +26,7 @@ import numpy as np
 
 from mmctl.config import Config
 from mmctl.runtime.loop import CycleLoop, Tick
-from mmctl.runtime.timing import TimingRing, TimingSnapshot, TimingStats, summarize
+from mmctl.runtime.timing import TimingRing, TimingSnapshot, TimingStats, cycle_rows, summarize
 from mmctl.telemetry.rerun_sink import Destinations
 from mmctl.telemetry.service import Hook, TelemetryService
 
@@ -132,12 +132,6 @@ def overlapping_misses(snap: TimingSnapshot, lead_ns: int, starts: np.ndarray,
     return n
 
 
-def _window(per_cycle: np.ndarray, snap: TimingSnapshot) -> np.ndarray:
-    """The rows of a per-cycle array (indexed by cycle % size) for a snapshot's cycles."""
-    idx = np.arange(snap.first_index, snap.first_index + len(snap)) % per_cycle.shape[0]
-    return per_cycle[idx]
-
-
 def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = None,
             lead_ns: int = 0, hook_ns: np.ndarray | None = None) -> dict[str, Any]:
     s_off, s_on = _pool(phases, False), _pool(phases, True)
@@ -155,7 +149,7 @@ def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = No
         "phases": len(phases),
     }
     if hook_ns is not None:
-        on_hook = np.concatenate([_window(hook_ns, p.snapshot) for p in phases if p.telemetry]
+        on_hook = np.concatenate([cycle_rows(hook_ns, p.snapshot) for p in phases if p.telemetry]
                                  + [np.zeros(0, np.int64)]) / 1e3
         on_hook = on_hook[on_hook > 0]
         if on_hook.size:

@@ -39,8 +39,8 @@ request goes out at once — or, once the caller uses :meth:`CanForceSensor.requ
 (the daemon does, at the end of each cycle), when the caller sends it — so the sensor
 answers before the next :meth:`CanForceSensor.read`, which normally finds both reply
 frames already queued (the sample is then up to one period old, 2 ms at 500 Hz, against
-a 53 ms admittance time constant).  When the request in flight is older than ``sensor.can.timeout`` (the caller
-paused), its reply would be too old: it is discarded and a fresh request is waited for.
+a 53 ms admittance time constant).  When the request in flight is older than
+``sensor.can.timeout`` (the caller paused), its reply would be too old: it is discarded and a fresh request is waited for.
 A request that gets no complete reply within ``timeout`` counts as lost and is sent
 again at once; the previous sample is returned again until the newest one is older than
 ``sensor.wrench.stale_timeout``, then ``SafetyFault(SENSOR_STALE)`` is raised.  A read
