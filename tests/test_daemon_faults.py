@@ -332,7 +332,7 @@ def test_loop_overrun_budget_on_the_real_loop(world: World) -> None:
     d.call("disable")
     slow = threading.Event()
     d.start()
-    d.sample_hook = lambda s: time.sleep(0.008) if slow.is_set() else None
+    d.sample_hook = lambda *_: time.sleep(0.008) if slow.is_set() else None
     wait_for(lambda: d.cycles > 50, "the loop to run")
     arm = wait_for(lambda: _try_enable(d), "enable on the loop", 60.0)
     assert arm

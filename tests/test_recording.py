@@ -50,7 +50,7 @@ def record(path: Path, n: int = N, queue_size: int = 4096, prefill: bool = False
             rows = tracker.stop()
         pub.put(s)
         if not prefill and s.cycle % 100 == 99:
-            assert pub.wait_published(pub.queue.accepted, WAIT)  # keep the queue short
+            assert pub.wait_published(pub.ring.accepted, WAIT)  # keep the queue short
     results = [tracker.finish(rows)] if rows is not None else []
     if prefill:
         pub.start()
@@ -62,7 +62,7 @@ def test_recording_holds_documented_entities_and_metrics_equal_the_logged_ones(
         tmp_path: Path) -> None:
     path = tmp_path / "run.rrd"
     pub, (live,) = record(path)
-    assert pub.queue.dropped == 0 and pub.published == N
+    assert pub.ring.dropped == 0 and pub.published == N
 
     from rerun.chunk import RrdReader  # rerun's own API, independently of mmctl's reader
 
@@ -96,9 +96,9 @@ def test_recording_holds_documented_entities_and_metrics_equal_the_logged_ones(
 def test_a_full_queue_drops_and_the_recording_holds_the_rest(tmp_path: Path) -> None:
     path = tmp_path / "drops.rrd"
     pub, _ = record(path, n=500, queue_size=300, prefill=True, trial=None)
-    assert pub.queue.dropped == 200 and pub.published == 300
+    assert pub.ring.dropped == 200 and pub.published == 300
     rec = load_recording(path)
-    assert len(rec.cycle) + pub.queue.dropped == 500
+    assert len(rec.cycle) + pub.ring.dropped == 500
     assert list(rec.cycle) == list(range(300))  # the newest were dropped, in order
     assert rec.dropped == 200
     assert entity_rows(path, layout.DROPPED.path) == 1

@@ -16,6 +16,7 @@ from mmctl.telemetry.batch import Columns, full_rate, norm3, norm3_rows, plot_ra
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.publisher import Publisher
 from mmctl.telemetry.queue import DropQueue
+from mmctl.telemetry.ring import SampleRing, rows_of, sample_of
 from mmctl.telemetry.synthetic import synthetic_sample, synthetic_samples
 
 WAIT = 60.0  # generous: the machine is shared
@@ -88,7 +89,8 @@ def test_norm3_scalar_and_column_forms_are_bit_identical() -> None:
 
 def test_full_and_plot_rate_columns_hold_the_sample_values() -> None:
     samples = list(synthetic_samples(23, start=7))
-    cols = full_rate(samples)
+    rows = rows_of(samples)
+    cols = full_rate(rows)
     assert list(cols.cycle) == list(range(7, 30))
     assert cols.time_ns[1] - cols.time_ns[0] == 2_000_000
     e = cols.values[layout.ENERGY.path]
@@ -103,7 +105,7 @@ def test_full_and_plot_rate_columns_hold_the_sample_values() -> None:
 
     stride = plot_stride(500.0, 100.0)
     assert stride == 5
-    plot = plot_rate(samples, stride)
+    plot = plot_rate(rows, stride)
     assert list(plot.cycle) == [10, 15, 20, 25]
     assert np.array_equal(plot.values[layout.WHEELS.path][0], samples[3].wheels_cmd)
     assert np.array_equal(plot.values[layout.BASE_TWIST.path][1], samples[8].qd_cmd[6:])
@@ -123,11 +125,11 @@ def test_put_never_blocks_while_the_sink_is_stuck_and_drops_are_counted() -> Non
         results = [pub.put(s) for s in synthetic_samples(500, start=1)]
         # Every put returned (we are here), the queue kept exactly its capacity:
         assert results.count(True) == 50 and results.count(False) == 450
-        assert pub.queue.dropped == 450 and len(pub.queue) == 50
+        assert pub.ring.dropped == 450 and len(pub.ring) == 50
     finally:
         gate.set()
         pub.close()
-    assert pub.published == 51 == pub.queue.accepted
+    assert pub.published == 51 == pub.ring.accepted
     assert sink.closed == 1
     cycles, _ = sink.rows(layout.ENERGY.path)
     assert list(cycles) == list(range(51))
@@ -158,9 +160,9 @@ def test_the_loop_never_waits_on_a_stuck_publisher() -> None:
         threading.Thread(target=watch, daemon=True).start()
         assert done.wait(WAIT)
         assert loop.cycles >= target
-        assert pub.queue.dropped > 0
-        assert pub.queue.accepted + pub.queue.dropped >= target
-        assert len(pub.queue) == 64
+        assert pub.ring.dropped > 0
+        assert pub.ring.accepted + pub.ring.dropped >= target
+        assert len(pub.ring) == 64
     finally:
         loop.join(WAIT)
         gate.set()
@@ -170,30 +172,78 @@ def test_the_loop_never_waits_on_a_stuck_publisher() -> None:
 
 def test_flush_sends_scene_events_timing_and_state_changes() -> None:
     ring = TimingRing(64)
-    for i in range(10):
-        ring.record(1_000_000 + i * 2_000_000, 5_000 + i, 100_000 + i, 1_800_000, 0)
     sink = RecordingSink()
-    pub = Publisher(sink, timing=ring, origin_ns=1_000_000, scene=CountScene())
-    pub._timing_next = 0  # as if started before the ring's first cycle
+    pub = Publisher(sink, timing=ring, scene=CountScene(), pace=False)
     sink.open()
     samples = list(synthetic_samples(10))
     samples[6] = samples[6]._replace(safety="fault")
-    for s in samples:
+    for i, s in enumerate(samples):
+        if i:  # the loop records cycle i-1's timing before cycle i's sample is written
+            ring.record(1_000_000 + (i - 1) * 2_000_000, 5_000 + i - 1, 100_000 + i - 1,
+                        1_800_000, 0)
         pub.put(s)
     pub.post_event(Event(3, 0.006, "hello"))
     pub.flush()
     cyc, timing = sink.rows(layout.LOOP_TIMING.path)
-    assert list(cyc) == list(range(10))
+    assert list(cyc) == list(range(9))  # the first row had no previous cycle
     assert timing[2].tolist() == [100.002, 1800.0, 5.002]
     tcols = next(c for c in sink.columns if layout.LOOP_TIMING.path in c.values)
     assert tcols.time_ns[3] == 6_000_000
     assert sink.scenes == [9]
     texts = [e.text for e in sink.events]
-    assert texts[0] == "mode=min_energy safety=armed"
-    assert "mode=min_energy safety=fault" in texts and "hello" in texts
+    assert texts[0] == "mode=min-energy safety=armed"
+    assert "mode=min-energy safety=fault" in texts and "hello" in texts
     assert [e.cycle for e in sink.events if "safety" in e.text] == [0, 6, 7]
     pub.flush()  # nothing new: no duplicate timing rows, no scene
-    assert len(sink.rows(layout.LOOP_TIMING.path)[0]) == 10 and sink.scenes == [9]
+    assert len(sink.rows(layout.LOOP_TIMING.path)[0]) == 9 and sink.scenes == [9]
+
+
+def test_timing_after_a_missed_deadline_lands_on_the_late_cycle() -> None:
+    ring = TimingRing(8)
+    sink = RecordingSink()
+    pub = Publisher(sink, timing=ring, pace=False)
+    ring.record(9_000_000, 4_000, 2_500_000, -500_000, 1)  # cycle 4 ran late: 1 skipped
+    pub.put(synthetic_sample(5)._replace(t=0.012))  # cycle 5 is due one period later
+    pub.flush()
+    cyc, timing = sink.rows(layout.LOOP_TIMING.path)
+    assert list(cyc) == [4] and timing[0].tolist() == [2500.0, -500.0, 4.0]
+    tcols = next(c for c in sink.columns if layout.LOOP_TIMING.path in c.values)
+    assert tcols.time_ns.tolist() == [8_000_000]
+
+
+# -- the ring -------------------------------------------------------------------------------
+def test_ring_rows_round_trip_and_a_full_ring_drops_new_rows() -> None:
+    ring = SampleRing(4)
+    sent = list(synthetic_samples(6))
+    assert [ring.put(s) for s in sent] == [True] * 4 + [False] * 2
+    assert (ring.accepted, ring.dropped, len(ring)) == (4, 2, 4)
+    rows = ring.take(3)
+    assert rows.shape == (3, 57) and len(ring) == 1
+    back = sample_of(rows[1])
+    for name, value in sent[1]._asdict().items():
+        got = getattr(back, name)
+        assert (np.array_equal(got, value) if isinstance(value, np.ndarray) else got == value), name
+    assert ring.put(sent[4]) and ring.put(sent[5])  # room again, order kept across the wrap
+    assert ring.take()[:, 0].tolist() == [3.0, 4.0, 5.0]
+    assert sample_of(rows_of([sent[0]._replace(mode="bogus")])[0]).mode == "?"
+    with pytest.raises(ValueError):
+        SampleRing(0)
+
+
+def test_a_ring_in_a_file_is_shared_by_two_mappings() -> None:
+    writer = SampleRing.create_file(16)
+    try:
+        assert writer.path is not None
+        reader = SampleRing.attach_file(writer.path, 16)
+    finally:
+        writer.unlink()
+    assert writer.path is None
+    for s in synthetic_samples(20):
+        writer.put(s)
+    rows = reader.take()
+    assert rows[:, 0].tolist() == list(range(16)) and writer.dropped == 4
+    reader.mark_published(16)
+    assert writer.published == 16 and len(writer) == 0
 
 
 def test_a_sink_error_is_stored_and_reraised_by_close_and_put_keeps_working() -> None:
@@ -204,7 +254,7 @@ def test_a_sink_error_is_stored_and_reraised_by_close_and_put_keeps_working() ->
     assert not pub.wait_published(1, WAIT)
     assert isinstance(pub.error, RuntimeError)
     assert all(isinstance(pub.put(s), bool) for s in synthetic_samples(20))
-    assert pub.queue.dropped > 0
+    assert pub.ring.dropped > 0
     with pytest.raises(RuntimeError, match="sink broke"):
         pub.close()
     pub.close()  # idempotent
@@ -219,7 +269,8 @@ def test_telemetry_off_imports_no_rerun() -> None:
         "import mmctl.telemetry.publisher, mmctl.telemetry.recording, mmctl.telemetry.trial\n"
         "svc = TelemetryService(default_config(), destinations_from(default_config()))\n"
         "svc.start()\n"
-        "assert svc.hook() is None and svc.publisher is None\n"
+        "from mmctl.runtime.core import ControlCore\n"
+        "assert svc.hook(ControlCore(default_config())) is None and svc.publisher is None\n"
         "assert 'rerun' not in sys.modules, 'rerun imported'\n"
         "print('ok')\n"
     )
@@ -227,3 +278,43 @@ def test_telemetry_off_imports_no_rerun() -> None:
                          timeout=120, check=False)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"
+
+
+# -- the loop's row writer ------------------------------------------------------------------
+def test_control_core_fills_a_row_in_the_base_frame() -> None:
+    import math
+    import time
+
+    from mmctl.config import default_config
+    from mmctl.runtime.core import ControlCore
+    from mmctl.telemetry import ring as tr
+    from mmctl.types import ArmState, Odometry, Wrench
+
+    cfg = default_config()
+    core = ControlCore(cfg)
+    q_arm = np.asarray(cfg.robot.q_des, dtype=float)
+    now = time.monotonic()
+    arm = ArmState(q_arm.copy(), np.zeros(6), 0.0, 2, 0)
+    odom = Odometry(0.4, -0.2, 0.5, 0.0, 0.0, 0.0, now)
+    for k in range(20):  # a push along y: the admittance speeds up
+        r = core.step(arm, Wrench(np.array([0.0, 15.0, 0.0]), np.zeros(3), now, k), odom,
+                      0.002, active=True, now=now)
+    core.set_mode("switch")
+    row = np.full(tr.WIDTH, np.nan)
+    core.fill_row(r, 7, 0.014, "armed", row)
+    assert row[tr.CYCLE] == 7 and row[tr.T] == 0.014
+    assert tr.label(tr.MODES, row[tr.MODE]) == f"switch/{core.switch}"
+    assert tr.label(tr.SAFETY_STATES, row[tr.SAFETY]) == "armed"
+    assert np.isnan(row[tr.PREV_LATENCY:tr.PREV_MISSED + 1]).all()  # the ring's columns
+    assert np.array_equal(row[tr.Q_A], r.q[:6]) and np.array_equal(row[tr.BASE_POSE], r.q[6:])
+    assert np.array_equal(row[tr.F_H], r.f_h) and np.array_equal(row[tr.V_D], r.v_d)
+    assert r.out is not None and np.array_equal(row[tr.V], r.out.v)
+    assert np.linalg.norm(row[tr.V_D][:3]) > 0.01
+    assert np.array_equal(row[tr.QD_CMD], r.qd_cmd)
+    assert np.allclose(row[tr.WHEELS], core._wheels @ r.twist)
+    assert row[tr.E_TOTAL] == r.energy.total
+    # world -> mobile base frame: rotate the offset from the base by -yaw
+    c, s = math.cos(0.5), math.sin(0.5)
+    for world, got in ((r.p, row[tr.P]), (r.p_des, row[tr.P_DES])):
+        dx, dy = world[0] - 0.4, world[1] + 0.2
+        assert np.allclose(got, [c * dx + s * dy, -s * dx + c * dy, world[2]], atol=1e-15)

@@ -13,6 +13,7 @@ from mmctl.telemetry import layout
 from mmctl.telemetry.batch import full_rate
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.recording import RecordedTrial, Recording, recording_metrics
+from mmctl.telemetry.ring import encode, rows_of
 from mmctl.telemetry.sample import zero_sample
 from mmctl.telemetry.synthetic import synthetic_samples
 from mmctl.telemetry.trial import TrialError, TrialTracker, compute
@@ -106,7 +107,7 @@ def test_tracker_and_recorded_columns_give_identical_metrics(n: int, start: int,
         if s.cycle == stop:
             rows = tr.stop()
     live = tr.finish(rows)
-    cols = full_rate(samples)
+    cols = full_rate(rows_of(samples))
     rec = Recording("mem", cols.cycle, cols.time_ns, cols.values,
                     [RecordedTrial(1, start, stop, None)], {"period_s": 0.002})
     (again,) = recording_metrics(rec)
@@ -116,7 +117,7 @@ def test_tracker_and_recorded_columns_give_identical_metrics(n: int, start: int,
 
 def test_recording_without_trials_is_one_whole_trial_and_unstopped_runs_to_the_end() -> None:
     samples = list(synthetic_samples(40))
-    cols = full_rate(samples)
+    cols = full_rate(rows_of(samples))
     rec = Recording("mem", cols.cycle, cols.time_ns, cols.values, [], {})
     (whole,) = recording_metrics(rec)
     assert (whole.trial, whole.samples, whole.finished) == (0, 40, True)
@@ -139,7 +140,9 @@ def test_service_brackets_trials_with_telemetry_off() -> None:
     from mmctl.telemetry.service import TelemetryService
 
     svc = TelemetryService(default_config())
-    daemon = SimpleNamespace(sample_hook=svc.hook())
+    # a core whose "cycle result" is already a sample (ControlCore.fill_row has its own test)
+    core = SimpleNamespace(fill_row=lambda s, cycle, t, safety, row: encode(s, row))
+    daemon = SimpleNamespace(sample_hook=svc.hook(core), core=core)
     assert daemon.sample_hook is None and not svc.enabled
 
     def on_loop(fn):  # type: ignore[no-untyped-def]
@@ -149,7 +152,7 @@ def test_service_brackets_trials_with_telemetry_off() -> None:
         "trial": 1, "started": True}
     assert daemon.sample_hook is not None
     for s in HAND:
-        daemon.sample_hook(s)
+        daemon.sample_hook(s, s.cycle, s.t, s.safety)
     out = svc.command({"cmd": "trial", "action": "stop"}, on_loop, daemon)
     assert daemon.sample_hook is None
     assert out["E"] == pytest.approx(3.0) and out["samples"] == 3 and out["trial"] == 1

@@ -199,7 +199,9 @@ def test_safety_stop_is_detected_on_the_first_sample_that_shows_it(
     fault, states = run_until_fault(arm, qd)
     assert fault.cause is cause
     assert all(s.controller_time <= t_fault for s in states)  # none missed the fault
-    assert fault.details["controller_time"] > t_fault  # raised on its first sample
+    # raised on its first sample (the one stamped at the injection may already carry it;
+    # a later one would have shown up in ``states`` above, stamped after t_fault)
+    assert fault.details["controller_time"] >= t_fault
     print(f"{cause.value}: {len(states)} cycles from injection to detection "
           "(0 after the first sample carrying it)")
     arm.stop()  # never blocks: speedJ(0) since the arm is not healthy

@@ -5,7 +5,7 @@ Runs :class:`mmctl.runtime.core.ControlCore` (wrench processing, admittance, min
 IDK, limits, energy: the daemon's per-cycle math) in a real 500 Hz
 :class:`~mmctl.runtime.loop.CycleLoop`, fed with synthetic device readings (a person
 pushing the handle while the measured joints follow the command), in alternating
-phases with telemetry off and on (sample + trial tracker + queue, publisher thread
+phases with telemetry off and on (the cycle's row into the sample ring, publisher
 writing a real ``.rrd``).  Prints compute time / wake latency percentiles and missed
 deadlines per condition.
 
@@ -32,10 +32,11 @@ from mmctl.types import ArmState, Odometry, Wrench
 
 
 def make_body_factory(cfg):  # type: ignore[no-untyped-def]
-    """body_for(hook, origin_ns) -> body(tick): one ControlCore cycle (+ sample + hook)."""
+    """body_for(service, origin_ns) -> body(tick): one ControlCore cycle (+ telemetry hook)."""
 
-    def body_for(hook, origin_ns):  # type: ignore[no-untyped-def]
+    def body_for(service, origin_ns):  # type: ignore[no-untyped-def]
         core = ControlCore(cfg)
+        hook = service.hook(core)
         q = np.concatenate((np.asarray(cfg.robot.q_des, dtype=float), np.zeros(3)))
         qd = np.zeros(9)
         dt = 1.0 / cfg.loop.rate_hz
@@ -52,7 +53,7 @@ def make_body_factory(cfg):  # type: ignore[no-untyped-def]
             qd = r.qd_cmd.copy()
             q = q + qd * dt
             if hook is not None:
-                hook(core.sample(r, tick.index, t, "armed"))
+                hook(r, tick.index, t, "armed")
 
         return body
 

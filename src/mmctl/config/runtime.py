@@ -83,12 +83,12 @@ class TelemetryConfig:
         doc="3-D frames and publisher wake-ups per second (fewer wake-ups, larger batches: "
         "less interference with the loop; `mmctl bench loop --telemetry` measures it)",
     )
-    queue_size: int = param(4096, gt=0, doc="samples held between the loop and the publisher")
+    queue_size: int = param(4096, gt=0, doc="samples (ring rows) held between the loop and the publisher")
     process: bool = param(
-        False, doc="run rerun in a child process (its GIL-holding calls then stay out of the "
-        "loop's interpreter, but the process competes for the CPU: on 2 cores the loop's "
-        "wake latency got worse); false: in the publisher thread, paced into the loop's "
-        "idle time")
+        True, doc="run the publisher (batching, 3-D frames, rerun) in a child process that "
+        "maps the loop's sample ring from shared memory, so none of its work takes the "
+        "daemon's interpreter lock; false: a thread of the daemon, paced into the loop's "
+        "idle time (`mmctl bench loop --telemetry` compares them)")
     viewer: bool = param(False, doc="spawn a local rerun viewer (127.0.0.1:9876)")
     connect: str = param(
         "", doc="stream to a running viewer: HOST:PORT, PORT or rerun+http URL; '' = no"

@@ -26,6 +26,7 @@ from mmctl.control.step import Controller, ControllerState, StepInputs, StepOutp
 from mmctl.control.wrench import WrenchProcessor
 from mmctl.errors import FaultCause, MmctlError
 from mmctl.model.robot import RobotModel
+from mmctl.telemetry import ring as tr
 from mmctl.types import ArmState, Odometry, Vec, Wrench
 
 _Z3 = np.zeros(3)
@@ -159,26 +160,33 @@ class ControlCore:
                            dict(details), taring, None)
 
     # -- telemetry ----------------------------------------------------------------------
-    def sample(self, r: CycleResult, cycle: int, t: float, safety: str) -> Any:
-        """The :class:`~mmctl.telemetry.sample.TelemetrySample` of this cycle."""
-        from mmctl.telemetry.sample import TelemetrySample
+    def fill_row(self, r: CycleResult, cycle: int, t: float, safety: str, row: Any) -> None:
+        """Write this cycle into a telemetry row (:mod:`mmctl.telemetry.ring` layout) in
+        place, all but the timing columns (the ring's): the loop's telemetry hot path.
 
+        Positions go into the mobile base frame; ``v`` is the step's own J(q) q̇ (no
+        second Jacobian on the loop), or J(q) q̇ from the measured velocities when the
+        controller did not run.
+        """
         q = r.q
-        c, s = math.cos(q[8]), math.sin(q[8])
-        if r.out is not None:  # the step's own J(q) qdot: no second Jacobian on the loop
-            v = r.out.v
+        mode = self.mode if self.mode != "switch" else f"switch/{self.switch}"
+        row[:tr.PREV_LATENCY] = (cycle, t, tr.mode_code(mode), tr.safety_code(safety))
+        row[tr.Q_A.start:tr.BASE_POSE.stop] = q
+        row[tr.F_H] = r.f_h
+        row[tr.V_D] = r.v_d
+        if r.out is not None:
+            row[tr.V] = r.out.v
         else:
             jac = self.model.jacobian(q) if math.isfinite(float(q @ q)) else np.zeros((6, 9))
-            v = jac @ r.qd
-        dp, dpd = r.p - np.array([q[6], q[7], 0.0]), r.p_des - np.array([q[6], q[7], 0.0])
-        p_base = np.array([c * dp[0] + s * dp[1], -s * dp[0] + c * dp[1], dp[2]])
-        pd_base = np.array([c * dpd[0] + s * dpd[1], -s * dpd[0] + c * dpd[1], dpd[2]])
-        mode = self.mode if self.mode != "switch" else f"switch/{self.switch}"
-        return TelemetrySample(
-            cycle=cycle, t=t, q_a=q[:6].copy(), base_pose=q[6:9].copy(), f_h=r.f_h,
-            v_d=r.v_d, v=v, qd_cmd=r.qd_cmd, wheels_cmd=self._wheels @ r.twist,
-            e_total=r.energy.total, e_arm=r.energy.arm, e_base=r.energy.base,
-            p=p_base, p_des=pd_base, mode=mode, safety=safety)
+            row[tr.V] = jac @ r.qd
+        row[tr.QD_CMD] = r.qd_cmd
+        row[tr.WHEELS] = self._wheels @ r.twist
+        e = r.energy
+        row[tr.ENERGY] = (e.total, e.arm, e.base)
+        c, sn = math.cos(q[8]), math.sin(q[8])
+        for at, p in ((tr.P.start, r.p), (tr.P_DES.start, r.p_des)):
+            dx, dy = p[0] - q[6], p[1] - q[7]
+            row[at:at + 3] = (c * dx + sn * dy, -sn * dx + c * dy, p[2])
 
 
 def check_mode(name: str) -> None:

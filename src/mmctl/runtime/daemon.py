@@ -49,9 +49,10 @@ from mmctl.runtime.timing import TimingRing
 
 log = structlog.get_logger("mmctl.daemon")
 
-#: The hook the telemetry publisher attaches: called on the loop thread once per cycle
-#: with a :class:`mmctl.telemetry.sample.TelemetrySample`; must not block.
-SampleHook = Callable[[Any], None]
+#: The hook telemetry attaches: called on the loop thread once per cycle as
+#: ``hook(result, cycle, t, safety)`` (the cycle's CycleResult, its index, its deadline
+#: since the origin [s], the safety state's name); must not block.
+SampleHook = Callable[[Any, int, float, str], None]
 
 _BASE_CAUSES = frozenset({FaultCause.DRIVE_FAULT, FaultCause.DRIVE_HEARTBEAT,
                           FaultCause.BASE_LINK})
@@ -148,8 +149,8 @@ class Daemon:
         gc.freeze()  # start-up objects (models, fakes) out of every later collection
         self._t0_ns = time.perf_counter_ns()
         if self.telemetry is not None:
-            self.telemetry.start(ring=self.ring, origin_ns=self._t0_ns)
-            self.sample_hook = self.telemetry.hook()
+            self.telemetry.start(ring=self.ring)
+            self.sample_hook = self.telemetry.hook(self.core)
         self.loop.start()
         if self.server is not None:
             self.server.start()
@@ -477,8 +478,8 @@ class Daemon:
         hook = self.sample_hook
         if hook is not None and result is not None:
             t0 = time.perf_counter_ns()
-            hook(self.core.sample(result, tick.index, (tick.deadline_ns - self._t0_ns) * 1e-9,
-                                  self.safety.state.value))
+            hook(result, tick.index, (tick.deadline_ns - self._t0_ns) * 1e-9,
+                 self.safety.state.value)
             self.hook_ns[self.cycles % self.hook_ns.shape[0]] = time.perf_counter_ns() - t0
         if stop_now:
             self._update_status()

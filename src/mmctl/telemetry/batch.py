@@ -1,8 +1,8 @@
-"""Turn a list of per-cycle samples into columns (pure numpy, no rerun).
+"""Turn the sample rows the publisher took from the ring into columns (pure numpy).
 
-The publisher stacks the samples it drained into one :class:`Columns` per rate: the
-full-rate series (every sample: the trial-metric inputs) and the plot-rate series
-(every ``stride``-th cycle).  The same row functions (:func:`force_norm`,
+The publisher slices the rows (:mod:`mmctl.telemetry.ring`) into one :class:`Columns`
+per rate: the full-rate series (every sample: the trial-metric inputs), the plot-rate
+series (every ``stride``-th cycle) and the loop timing.  The same row functions (:func:`force_norm`,
 :func:`ee_speed`) are used by the trial tracker, so metrics computed live and metrics
 recomputed from a recording see bit-identical inputs.
 """
@@ -10,14 +10,12 @@ recomputed from a recording see bit-identical inputs.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mmctl.telemetry import layout
-from mmctl.telemetry.sample import TelemetrySample
+from mmctl.telemetry import layout, ring
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -69,49 +67,51 @@ class Columns(NamedTuple):
         return int(self.cycle.shape[0])
 
 
-def _stack(samples: Sequence[TelemetrySample], field: str) -> F64:
-    return np.array([getattr(s, field) for s in samples], dtype=np.float64)
+def _index(rows: F64) -> tuple[I64, I64]:
+    return rows[:, ring.CYCLE].astype(np.int64), time_ns(rows[:, ring.T])
 
 
-def _index(samples: Sequence[TelemetrySample]) -> tuple[I64, I64]:
-    cycle = np.fromiter((s.cycle for s in samples), np.int64, len(samples))
-    t = np.fromiter((s.t for s in samples), np.float64, len(samples))
-    return cycle, time_ns(t)
-
-
-def full_rate(samples: Sequence[TelemetrySample]) -> Columns:
-    """The full-rate series of every sample (E_K, ‖f_h‖, speeds, p, p_des)."""
-    cycle, t_ns = _index(samples)
-    n = len(samples)
-    energy = np.empty((n, 3))
-    for i, s in enumerate(samples):
-        energy[i, 0] = s.e_total
-        energy[i, 1] = s.e_arm
-        energy[i, 2] = s.e_base
-    speed = np.empty((n, 2))
-    speed[:, 0] = ee_speed(_stack(samples, "v_d").reshape(n, 6))
-    speed[:, 1] = ee_speed(_stack(samples, "v").reshape(n, 6))
+def full_rate(rows: F64) -> Columns:
+    """The full-rate series of every row (E_K, ‖f_h‖, speeds, p, p_des) of an (n,
+    ring.WIDTH) array of sample rows (:mod:`mmctl.telemetry.ring`)."""
+    cycle, t_ns = _index(rows)
+    speed = np.empty((len(rows), 2))
+    speed[:, 0] = ee_speed(rows[:, ring.V_D])
+    speed[:, 1] = ee_speed(rows[:, ring.V])
     return Columns(cycle, t_ns, {
-        layout.ENERGY.path: energy,
-        layout.FORCE_NORM.path: force_norm(_stack(samples, "f_h").reshape(n, 6))[:, None],
+        layout.ENERGY.path: rows[:, ring.ENERGY].copy(),
+        layout.FORCE_NORM.path: force_norm(rows[:, ring.F_H])[:, None],
         layout.SPEED.path: speed,
-        layout.EE_POSITION.path: _stack(samples, "p").reshape(n, 3),
-        layout.EE_POSITION_DES.path: _stack(samples, "p_des").reshape(n, 3),
+        layout.EE_POSITION.path: rows[:, ring.P].copy(),
+        layout.EE_POSITION_DES.path: rows[:, ring.P_DES].copy(),
     })
 
 
-def plot_rate(samples: Sequence[TelemetrySample], stride: int) -> Columns:
-    """The plot-rate series of the samples whose cycle is a multiple of ``stride``."""
-    picked = [s for s in samples if s.cycle % stride == 0]
+def plot_rate(rows: F64, stride: int) -> Columns:
+    """The plot-rate series of the rows whose cycle is a multiple of ``stride``."""
+    picked = rows[rows[:, ring.CYCLE].astype(np.int64) % stride == 0]
     cycle, t_ns = _index(picked)
-    n = len(picked)
-    qd = _stack(picked, "qd_cmd").reshape(n, 9)
+    qd = picked[:, ring.QD_CMD]
     return Columns(cycle, t_ns, {
-        layout.FORCE.path: _stack(picked, "f_h").reshape(n, 6),
-        layout.ARM_QD.path: qd[:, :6],
-        layout.BASE_TWIST.path: qd[:, 6:],
-        layout.WHEELS.path: _stack(picked, "wheels_cmd").reshape(n, 4),
+        layout.FORCE.path: picked[:, ring.F_H].copy(),
+        layout.ARM_QD.path: qd[:, :6].copy(),
+        layout.BASE_TWIST.path: qd[:, 6:].copy(),
+        layout.WHEELS.path: picked[:, ring.WHEELS].copy(),
     })
+
+
+def loop_timing(rows: F64, period_ns: int) -> Columns:
+    """The loop timing each row carries for the cycle before it (compute, slack,
+    latency [us]) at that cycle's index and deadline (rows without timing skipped)."""
+    had = rows[np.isfinite(rows[:, ring.PREV_COMPUTE])]
+    cycle, t_ns = _index(had)
+    missed = had[:, ring.PREV_MISSED].astype(np.int64)
+    values = np.empty((len(had), 3))
+    values[:, 0] = had[:, ring.PREV_COMPUTE] * 1e-3
+    values[:, 1] = had[:, ring.PREV_SLACK] * 1e-3
+    values[:, 2] = had[:, ring.PREV_LATENCY] * 1e-3
+    # the previous deadline: after a late cycle the loop skips ``missed`` periods
+    return Columns(cycle - 1, t_ns - period_ns * (1 + missed), {layout.LOOP_TIMING.path: values})
 
 
 def plot_stride(loop_rate_hz: float, plot_rate_hz: float) -> int:

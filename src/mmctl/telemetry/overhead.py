@@ -9,7 +9,7 @@ ring and are pooled per condition.
 :func:`compare` runs a real :class:`~mmctl.runtime.loop.CycleLoop` for several phases in
 one process, alternating off / on (off, on, off, on, ...), each phase with a fresh
 timing ring, and pools the per-cycle timings of each condition.  "On" means the whole
-path: the body builds the sample and calls the hook (trial tracker + ``put``), and the
+path: the body calls the hook (the cycle written into the sample ring), and the
 publisher thread batches to a real rerun sink (an ``.rrd`` file) at the configured
 rates.  `mmctl bench loop --telemetry` and ``tools/telemetry_bench.py`` print the result.
 """
@@ -28,10 +28,11 @@ from mmctl.config import Config
 from mmctl.runtime.loop import CycleLoop, Tick
 from mmctl.runtime.timing import TimingRing, TimingSnapshot, TimingStats, cycle_rows, summarize
 from mmctl.telemetry.rerun_sink import Destinations
-from mmctl.telemetry.service import Hook, TelemetryService
+from mmctl.telemetry.service import TelemetryService
 
-#: body_for(hook, origin_ns) -> the loop body; hook is None when telemetry is off
-BodyFactory = Callable[[Hook | None, int], Callable[[Tick], None]]
+#: body_for(service, origin_ns) -> the loop body; the body installs ``service.hook(core)``
+#: (None when telemetry is off)
+BodyFactory = Callable[[TelemetryService, int], Callable[[Tick], None]]
 
 
 class Phase(NamedTuple):
@@ -63,8 +64,8 @@ def run_phase(cfg: Config, body_for: BodyFactory, seconds: float, telemetry: boo
     service = TelemetryService(cfg, Destinations(record=str(record)) if telemetry else None)
     loop_box: dict[str, Any] = {}
     origin = time.perf_counter_ns()
-    service.start(ring, origin)
-    body = body_for(service.hook(), origin)
+    service.start(ring)
+    body = body_for(service, origin)
 
     def counted(tick: Tick) -> None:
         body(tick)
@@ -155,11 +156,11 @@ def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = No
         if on_hook.size:
             out["hook_p50_us"] = round(float(np.percentile(on_hook, 50)), 2)
             out["hook_p99_us"] = round(float(np.percentile(on_hook, 99)), 2)
-    if busy is not None:
-        for key, on in (("misses_overlapping_publisher_off", False),
-                        ("misses_overlapping_publisher_on", True)):
-            out[key] = sum(overlapping_misses(p.snapshot, lead_ns, *busy)
-                           for p in phases if p.telemetry is on)
+    for key, on in (("misses_overlapping_publisher_off", False),
+                    ("misses_overlapping_publisher_on", True)):
+        # None: the publisher ran in another process (it never holds the loop's GIL)
+        out[key] = (sum(overlapping_misses(p.snapshot, lead_ns, *busy)
+                        for p in phases if p.telemetry is on) if busy is not None else None)
     return out
 
 
@@ -189,30 +190,33 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
     done: list[Phase] = []
     service = TelemetryService(cfg, Destinations(record=str(record_dir / "bench.rrd")))
     try:
-        service.start(ring, daemon._t0_ns)
+        service.start(ring)
         pub = service.publisher
-        hook = service.hook()
+        hook = service.hook(daemon.core)
         time.sleep(1.0)  # start-up (the publisher's process, rerun's threads) is not steady state
         for i in range(n):
             on = i % 2 == 1
             daemon.sample_hook = hook if on else None
             time.sleep(settle)  # the last batch of an "on" window is still being sent
-            c0, p0, d0 = ring.count, pub.published, pub.queue.dropped
+            c0, p0, d0 = ring.count, pub.published, pub.ring.dropped
             time.sleep(window)
             snap = ring.snapshot(ring.count - c0)
             done.append(Phase(on, snap, pub.published - p0 if on else 0,
-                              pub.queue.dropped - d0, pub.flush_ns_max / 1e3))
+                              pub.ring.dropped - d0, pub.flush_ns_max / 1e3))
         daemon.sample_hook = None
         service.close()
         if pub.error is not None:
             raise pub.error
-        busy = pub.busy.intervals()
+        busy = pub.busy.intervals() if pub.busy is not None else None
     finally:
         daemon.sample_hook = saved
         service.close()
         if tmp is not None:
             tmp.cleanup()
-    return _report(done, busy, daemon.loop.spin_margin_ns, daemon.hook_ns)
+    rep = _report(done, busy, daemon.loop.spin_margin_ns, daemon.hook_ns)
+    rep["publisher"] = "process" if cfg.telemetry.process else "thread"
+    rep["flush_max_us"] = max(rep["flush_max_us"], pub.flush_ns_max / 1e3)  # a child's: at close
+    return rep
 
 
 def format_report(r: dict[str, Any]) -> str:
@@ -232,7 +236,7 @@ def format_report(r: dict[str, Any]) -> str:
     if "hook_p99_us" in r:
         lines.append(f"the loop's own telemetry work (sample + queue): p50 {r['hook_p50_us']:.1f} "
                      f"us, p99 {r['hook_p99_us']:.1f} us per cycle")
-    if "misses_overlapping_publisher_on" in r:
+    if r.get("misses_overlapping_publisher_on") is not None:
         lines.append(f"late cycles overlapping the publisher's work: "
                      f"{r['misses_overlapping_publisher_on']} of {r['misses_on']} (on), "
                      f"{r['misses_overlapping_publisher_off']} of {r['misses_off']} (off)")

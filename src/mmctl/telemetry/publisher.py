@@ -1,18 +1,21 @@
-"""The telemetry publisher: a thread that drains the sample queue into a sink.
+"""The telemetry publisher: drains the sample ring into a sink.
 
-The loop thread calls :meth:`Publisher.put` (a bound ``DropQueue.put``: one length test
-and one ``deque.append``; never blocks, counts drops).  The publisher thread wakes
-``scene_rate`` times a second, drains everything queued and hands the sink
+The loop thread calls :meth:`Publisher.put` (a bound :meth:`SampleRing.put
+<mmctl.telemetry.ring.SampleRing.put>`: one row written into a preallocated ring;
+never blocks, counts drops).  The publisher wakes ``scene_rate`` times a second, takes
+every queued row and hands the sink
 
 * the full-rate columns of every sample (trial-metric inputs),
-* the loop timing of the new cycles, read from the loop's lock-free
-  :class:`~mmctl.runtime.timing.TimingRing` (so timing costs the loop nothing),
+* the loop timing each row carries for the cycle before it,
 * the plot-rate columns (every ``plot_stride``-th cycle) and the drop counter,
 * one 3-D scene frame (the newest sample) and the queued events,
 
-in one batch.  An exception in the thread is logged, stored in :attr:`Publisher.error`
-and re-raised by :meth:`Publisher.close`; the loop is never affected (the queue just
-fills up and counts drops).
+in one batch.  It runs as a thread of the daemon (:meth:`Publisher.start`), paced into
+the loop's idle time, or as the body of a child process that maps the ring from a file
+(:mod:`mmctl.telemetry.process_publisher`, :meth:`Publisher.run`).  An exception in the
+thread is logged, stored in :attr:`Publisher.error` and re-raised by
+:meth:`Publisher.close`; the loop is never affected (the ring just fills up and counts
+drops).
 """
 
 from __future__ import annotations
@@ -26,10 +29,12 @@ import numpy as np
 import structlog
 
 from mmctl.telemetry import layout
-from mmctl.telemetry.batch import Columns, full_rate, plot_rate, plot_stride
+from mmctl.telemetry import ring as rows_
+from mmctl.telemetry.batch import Columns, full_rate, loop_timing, plot_rate, plot_stride
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.pacer import LoopPacer
 from mmctl.telemetry.queue import DropQueue
+from mmctl.telemetry.ring import SampleRing
 from mmctl.telemetry.sample import TelemetrySample
 from mmctl.telemetry.scene import SceneFrame
 
@@ -56,44 +61,41 @@ class Scene(Protocol):
 
 
 class Publisher:
-    """Bounded queue + publisher thread (see the module docstring).
+    """Sample ring + publisher (see the module docstring).
 
     sink: where batches go; loop_rate_hz: the control rate [Hz]; plot_rate_hz: rate of
     the plot-rate series [Hz]; scene_rate_hz: wake-ups per second, one 3-D frame each
-    [Hz]; queue_size: samples held at most; timing: the loop's TimingRing (or None: no
-    timing series); origin_ns: perf_counter_ns of t = 0 (the ``time`` timeline of the
-    timing rows); scene: builds 3-D frames (None: no 3-D view); spin_margin_s: the
-    loop's spin margin [s]; pace: keep the work in the loop's idle time
-    (:mod:`~mmctl.telemetry.pacer`; needs ``timing``).
+    [Hz]; queue_size: rows the ring holds (when ``ring`` is None); ring: an existing
+    ring (e.g. mapped from another process); timing: the loop's TimingRing (the rows'
+    previous-cycle timing, and the pacer's clock), or None; scene: builds 3-D frames
+    (None: no 3-D view); spin_margin_s: the loop's spin margin [s]; pace: keep the work
+    in the loop's idle time (:mod:`~mmctl.telemetry.pacer`; needs ``timing``).
     """
 
     def __init__(self, sink: Sink, *, loop_rate_hz: float = 500.0, plot_rate_hz: float = 100.0,
-                 scene_rate_hz: float = 15.0, queue_size: int = 4096, timing: Any = None,
-                 origin_ns: int = 0, scene: Scene | None = None, spin_margin_s: float = 0.0001,
-                 pace: bool = True):
+                 scene_rate_hz: float = 15.0, queue_size: int = 4096,
+                 ring: SampleRing | None = None, timing: Any = None,
+                 scene: Scene | None = None, spin_margin_s: float = 0.0001, pace: bool = True):
         if scene_rate_hz <= 0 or plot_rate_hz <= 0 or loop_rate_hz <= 0:
             raise ValueError("rates must be > 0")
         self.sink = sink
-        self.queue: DropQueue[TelemetrySample] = DropQueue(queue_size)
+        self.ring = ring if ring is not None else SampleRing(queue_size, timing=timing)
         self.events: DropQueue[Event] = DropQueue(EVENT_QUEUE_SIZE)
-        self.put = self.queue.put  #: the loop's hot path: put(sample) -> bool, never blocks
+        self.put = self.ring.put  #: the loop's hot path: put(sample) -> bool, never blocks
         self.stride = plot_stride(loop_rate_hz, plot_rate_hz)
         self.wake_period = 1.0 / scene_rate_hz
-        self.timing = timing
-        self.origin_ns = origin_ns
+        self.period_ns = round(1e9 / loop_rate_hz)
         self.scene = scene
         self.error: BaseException | None = None
         self.published = 0  #: samples handed to the sink
         self.batches = 0
         self.flush_ns_max = 0  #: longest flush so far [ns]
         self.busy = BusyRing()
-        """When this thread ran its steps (between pacing points) [perf_counter ns]."""
-        self._timing_next = -1
-        period_ns = round(1e9 / loop_rate_hz)
-        self.pacer = (LoopPacer(timing, period_ns, int(spin_margin_s * 1e9))
+        """When this publisher ran its steps (between pacing points) [perf_counter ns]."""
+        self.pacer = (LoopPacer(timing, self.period_ns, int(spin_margin_s * 1e9))
                       if pace and timing is not None else None)
-        self._busy = np.zeros(0, np.int64)
-        self._state: tuple[str, str] | None = None
+        self._busy = np.zeros(0)
+        self._state: tuple[float, float] | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._progress = threading.Condition()
@@ -105,8 +107,6 @@ class Publisher:
         if self._thread is not None:
             raise RuntimeError("publisher already started")
         self.sink.open()
-        if self.timing is not None:
-            self._timing_next = self.timing.count
         self._thread = threading.Thread(target=self._run, name="mmctl-telemetry", daemon=True)
         self._thread.start()
 
@@ -142,9 +142,9 @@ class Publisher:
     def stats(self) -> dict[str, Any]:
         """Counters for ``status``: accepted, dropped, published, batches, longest flush."""
         return {
-            "accepted": self.queue.accepted,
-            "dropped": self.queue.dropped,
-            "queued": len(self.queue),
+            "accepted": self.ring.accepted,
+            "dropped": self.ring.dropped,
+            "queued": len(self.ring),
             "published": self.published,
             "batches": self.batches,
             "flush_max_us": round(self.flush_ns_max / 1e3, 1),
@@ -166,21 +166,29 @@ class Publisher:
     # -- the thread ---------------------------------------------------------------------------
     def _run(self) -> None:
         try:
-            next_wake = time.monotonic()
-            while True:
-                next_wake += self.wake_period
-                stopping = self._stop.wait(max(0.0, next_wake - time.monotonic()))
-                self.flush()
-                if stopping:
-                    break
-                if time.monotonic() > next_wake + self.wake_period:
-                    next_wake = time.monotonic()  # fell behind: do not burst to catch up
+            self.run()
         except BaseException as exc:  # noqa: BLE001 -- stored, logged, re-raised by close()
             self.error = exc
             log.error("telemetry_publisher_failed", error=repr(exc))
         finally:
             with self._progress:
                 self._progress.notify_all()
+
+    def run(self) -> None:
+        """Flush ``scene_rate`` times a second until :meth:`stop`; a last flush then."""
+        next_wake = time.monotonic()
+        while True:
+            next_wake += self.wake_period
+            stopping = self._stop.wait(max(0.0, next_wake - time.monotonic()))
+            self.flush()
+            if stopping:
+                break
+            if time.monotonic() > next_wake + self.wake_period:
+                next_wake = time.monotonic()  # fell behind: do not burst to catch up
+
+    def stop(self) -> None:
+        """Make :meth:`run` return after its next (last) flush."""
+        self._stop.set()
 
     def flush(self) -> None:
         """Drain the queues into the sink once (the thread's body; tests may call it)."""
@@ -195,73 +203,64 @@ class Publisher:
         wait()
         busy.begin()
         t0 = time.perf_counter_ns()
-        samples = self.queue.drain()
+        rows = self.ring.take()
+        n = len(rows)
         columns: list[Columns] = []
-        if samples:
-            columns.append(full_rate(samples))
-            pace()
-            columns.append(plot_rate(samples, self.stride))
-            pace()
-        timing = self._timing_columns()
-        if timing is not None:
-            columns.append(timing)
-        if samples:
-            last = samples[-1]
-            columns.append(Columns(np.array([last.cycle], np.int64),
-                                   columns[0].time_ns[-1:].copy(),
-                                   {layout.DROPPED.path: np.array([[float(self.queue.dropped)]])}))
         scene = None
-        if samples and self.scene is not None:
+        if n:
+            columns.append(full_rate(rows))
             pace()
-            last = samples[-1]
-            scene = (last.cycle, last.t, self.scene.frame(last))
+            columns.append(plot_rate(rows, self.stride))
+            pace()
+            timing = loop_timing(rows, self.period_ns)
+            if len(timing):
+                columns.append(timing)
+                self._update_pacer(rows)
+            columns.append(Columns(columns[0].cycle[-1:].copy(), columns[0].time_ns[-1:].copy(),
+                                   {layout.DROPPED.path: np.array([[float(self.ring.dropped)]])}))
+            if self.scene is not None:
+                pace()
+                last = rows_.sample_of(rows[-1])
+                scene = (last.cycle, last.t, self.scene.frame(last))
         self.sink.write(columns, scene, pace)
-        for event in self._state_changes(samples):
+        for event in self._state_changes(rows):
             self.sink.write_event(event)
         for event in self.events.drain():
             self.sink.write_event(event)
         self.batches += 1
+        self.ring.mark_published(n)
         with self._progress:
-            self.published += len(samples)
+            self.published += n
             self._progress.notify_all()
         self.flush_ns_max = max(self.flush_ns_max, time.perf_counter_ns() - t0)
         busy.end()
 
-    def _state_changes(self, samples: list[TelemetrySample]) -> list[Event]:
-        """Text events where the mode or the safety state changed."""
-        out = []
-        state = self._state
-        for s in samples:
-            now = (s.mode, s.safety)
-            if now != state:
-                level = "ERROR" if s.safety == "fault" else "INFO"
-                out.append(Event(s.cycle, s.t, f"mode={s.mode} safety={s.safety}", level))
-                state = now
-        self._state = state
-        return out
+    def _update_pacer(self, rows: np.ndarray) -> None:
+        """The pacer's expected wake latency + body time: p75 of the recent cycles."""
+        if self.pacer is None:
+            return
+        body = rows[:, rows_.PREV_LATENCY] + rows[:, rows_.PREV_COMPUTE]
+        busy = np.concatenate((self._busy, body[np.isfinite(body)]))[-1024:]
+        self._busy = busy
+        self.pacer.update(int(np.percentile(busy, 75)))
 
-    def _timing_columns(self) -> Columns | None:
-        ring = self.timing
-        if ring is None:
-            return None
-        new = ring.count - self._timing_next
-        if new <= 0:
-            return None
-        snap = ring.snapshot(last=new)
-        n = len(snap)
-        self._timing_next = snap.first_index + n
+    def _state_changes(self, rows: np.ndarray) -> list[Event]:
+        """Text events where the mode or the safety state changed."""
+        n = len(rows)
         if n == 0:
-            return None
-        if self.pacer is not None:
-            busy = np.concatenate((self._busy, snap.latency_ns + snap.compute_ns))[-1024:]
-            self._busy = busy
-            self.pacer.update(int(np.percentile(busy, 75)))
-        cycle = np.arange(snap.first_index, snap.first_index + n, dtype=np.int64)
-        values = np.empty((n, 3))
-        values[:, 0] = snap.compute_ns * 1e-3
-        values[:, 1] = snap.slack_ns * 1e-3
-        values[:, 2] = snap.latency_ns * 1e-3
-        return Columns(cycle, snap.deadline_ns - self.origin_ns, {layout.LOOP_TIMING.path: values})
+            return []
+        mode, safety = rows[:, rows_.MODE], rows[:, rows_.SAFETY]
+        change = np.ones(n, bool)
+        change[1:] = (mode[1:] != mode[:-1]) | (safety[1:] != safety[:-1])
+        if self._state is not None:
+            change[0] = (float(mode[0]), float(safety[0])) != self._state
+        self._state = (float(mode[-1]), float(safety[-1]))
+        out = []
+        for i in np.flatnonzero(change):
+            m, st = rows_.label(rows_.MODES, mode[i]), rows_.label(rows_.SAFETY_STATES, safety[i])
+            out.append(Event(int(rows[i, rows_.CYCLE]), float(rows[i, rows_.T]),
+                             f"mode={m} safety={st}", "ERROR" if st == "fault" else "INFO"))
+        return out
 
 
 class BusyRing:

@@ -58,4 +58,4 @@ def zero_sample(cycle: int = 0, t: float = 0.0) -> TelemetrySample:
     """A sample with every quantity zero (robot at rest, arm at zero joints)."""
     z3, z6 = np.zeros(3), np.zeros(6)
     return TelemetrySample(cycle, t, z6, z3, z6, z6, z6, np.zeros(9), np.zeros(4),
-                           0.0, 0.0, 0.0, z3, z3, "idle", "disabled")
+                           0.0, 0.0, 0.0, z3, z3, "idle", "disarmed")

@@ -6,8 +6,8 @@ The daemon calls :meth:`TelemetryService.start` once its loop origin is known, i
 requests to :meth:`TelemetryService.command` and calls :meth:`close` at shutdown.
 
 Cost when off: with no destination the publisher, rerun and the scene model are never
-created or imported, and the hook is None (the daemon does not even build a sample)
-except while a trial is bracketed, when it is the tracker's ``observe`` (~1 us).
+created or imported, and the hook is None (the loop does no telemetry work at all)
+except while a trial is bracketed, when it fills a scratch row for the tracker.
 """
 
 from __future__ import annotations
@@ -15,19 +15,20 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import numpy as np
 import structlog
 
 from mmctl import __version__
 from mmctl.config import Config
 from mmctl.errors import MmctlError
+from mmctl.telemetry import ring
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.rerun_sink import Destinations
-from mmctl.telemetry.sample import TelemetrySample
 from mmctl.telemetry.trial import TrialTracker
 
 log = structlog.get_logger("mmctl.telemetry")
 
-Hook = Callable[[TelemetrySample], None]
+Hook = Callable[[Any, int, float, str], None]
 OnLoop = Callable[[Callable[[], Any]], Any]
 
 
@@ -66,10 +67,10 @@ class TelemetryService:
         """True when samples go to rerun."""
         return self.destinations.any
 
-    def start(self, ring: Any = None, origin_ns: int = 0) -> None:
-        """Open the destinations and start the publisher thread (no-op when disabled).
+    def start(self, ring: Any = None) -> None:
+        """Open the destinations and start the publisher (no-op when disabled).
 
-        ring: the loop's TimingRing; origin_ns: perf_counter_ns of t = 0.
+        ring: the loop's TimingRing (loop timing in the rows, pacing).
         """
         if not self.enabled or self.publisher is not None:
             return
@@ -81,32 +82,57 @@ class TelemetryService:
         static: dict[str, float | int | str] = {"period_s": 1.0 / cfg.loop.rate_hz, "loop_rate_hz": cfg.loop.rate_hz,
                   "plot_rate_hz": t.plot_rate, "scene_rate_hz": t.scene_rate,
                   "queue_size": t.queue_size, "config": cfg.name, "mmctl": __version__}
-        sink_cls: Any = RerunSink
         if t.process:
-            from mmctl.telemetry.process_sink import ProcessSink
+            from mmctl.telemetry.process_publisher import ProcessPublisher
 
-            sink_cls = ProcessSink
-        sink = sink_cls(self.destinations, recording_name=cfg.name, static=static,
-                        mecanum=cfg.base.mecanum)
-        self.publisher = Publisher(sink, loop_rate_hz=cfg.loop.rate_hz, plot_rate_hz=t.plot_rate,
-                                   scene_rate_hz=t.scene_rate, queue_size=t.queue_size,
-                                   timing=ring, origin_ns=origin_ns,
-                                   scene=SceneBuilder(cfg.robot),
-                                   spin_margin_s=cfg.loop.spin_margin)
+            self.publisher = ProcessPublisher(
+                self.destinations, recording_name=cfg.name, static=static,
+                mecanum=cfg.base.mecanum, robot=cfg.robot, loop_rate_hz=cfg.loop.rate_hz,
+                plot_rate_hz=t.plot_rate, scene_rate_hz=t.scene_rate,
+                queue_size=t.queue_size, timing=ring)
+        else:
+            sink = RerunSink(self.destinations, recording_name=cfg.name, static=static,
+                             mecanum=cfg.base.mecanum)
+            self.publisher = Publisher(sink, loop_rate_hz=cfg.loop.rate_hz,
+                                       plot_rate_hz=t.plot_rate, scene_rate_hz=t.scene_rate,
+                                       queue_size=t.queue_size, timing=ring,
+                                       scene=SceneBuilder(cfg.robot),
+                                       spin_margin_s=cfg.loop.spin_margin)
         self.publisher.start()
         log.info("telemetry_started", viewer=self.destinations.viewer,
                  connect=self.destinations.connect, record=self.destinations.record)
 
-    def hook(self) -> Hook | None:
-        """The per-cycle callable for the loop (None: build no samples at all)."""
-        pub, tracker = self.publisher, self.tracker
-        if pub is None:
-            return tracker.observe if tracker.active else None
-        put, observe = pub.put, tracker.observe
+    def hook(self, core: Any) -> Hook | None:
+        """The per-cycle callable for the loop, ``hook(result, cycle, t, safety)``
+        (None: no telemetry work at all).
 
-        def both(s: TelemetrySample) -> None:
-            observe(s)
-            put(s)
+        core: the :class:`~mmctl.runtime.core.ControlCore` whose ``fill_row`` writes the
+        cycle into a row: straight into the ring (a full ring: into a scratch row, so a
+        trial still sees the cycle), then the trial tracker reads the row.
+        """
+        pub, tracker = self.publisher, self.tracker
+        fill, observe = core.fill_row, tracker.observe_row
+        scratch = np.full(ring.WIDTH, np.nan)
+        if pub is None:
+            if not tracker.active:
+                return None
+
+            def trial_only(r: Any, cycle: int, t: float, safety: str) -> None:
+                fill(r, cycle, t, safety, scratch)
+                observe(scratch)
+
+            return trial_only
+        claim, commit = pub.ring.claim, pub.ring.commit
+
+        def both(r: Any, cycle: int, t: float, safety: str) -> None:
+            row = claim()
+            if row is None:  # full: dropped and counted by the ring
+                fill(r, cycle, t, safety, scratch)
+                observe(scratch)
+                return
+            fill(r, cycle, t, safety, row)
+            observe(row)
+            commit()
 
         return both
 
@@ -121,13 +147,13 @@ class TelemetryService:
         if action == "start":
             def start() -> int:
                 n = tracker.start()
-                daemon.sample_hook = self.hook()
+                daemon.sample_hook = self.hook(daemon.core)
                 return n
             return {"trial": on_loop(start), "started": True}
         if action == "stop":
             def stop() -> Any:
                 rows = tracker.stop()
-                daemon.sample_hook = self.hook()
+                daemon.sample_hook = self.hook(daemon.core)
                 return rows
             return tracker.finish(on_loop(stop)).as_dict()
         if action == "status":

@@ -37,7 +37,7 @@ def synthetic_sample(k: int, period: float = 0.002, p_des: tuple[float, float, f
         cycle=k, t=t, q_a=q_a, base_pose=np.array([0.1 * t, 0.02 * t, 0.05 * t]), f_h=f,
         v_d=v_d, v=v, qd_cmd=np.concatenate((qd_arm, twist)), wheels_cmd=wheels,
         e_total=e_arm + e_base, e_arm=e_arm, e_base=e_base, p=p, p_des=np.array(p_des),
-        mode="min_energy", safety="armed",
+        mode="min-energy", safety="armed",
     )
 
 

@@ -3,8 +3,8 @@
 ``mmctl trial start`` / ``stop`` run :meth:`TrialTracker.start` / :meth:`TrialTracker.stop`
 on the loop thread (the daemon's command queue), so a trial covers whole cycles:
 from the first cycle after ``start`` to the last cycle before ``stop``, both included.
-While a trial is active :meth:`TrialTracker.observe` appends three floats per cycle
-(E_K, ‖f_h‖, ‖v‖; ~1 us); the means are computed off the loop thread by
+While a trial is active :meth:`TrialTracker.observe_row` appends three floats per cycle
+(E_K, ‖f_h‖, ‖v‖; ~2 us); the means are computed off the loop thread by
 :meth:`TrialTracker.finish`, with :func:`mmctl.control.metrics.trial_metrics`, the same
 function ``mmctl metrics`` applies to a recording, on bit-identical inputs
 (:func:`mmctl.telemetry.batch.norm3`).
@@ -20,7 +20,7 @@ import structlog
 
 from mmctl.control.metrics import TrialMetrics, trial_metrics
 from mmctl.errors import MmctlError
-from mmctl.telemetry import layout
+from mmctl.telemetry import layout, ring
 from mmctl.telemetry.batch import norm3
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.sample import TelemetrySample
@@ -110,22 +110,32 @@ class TrialTracker:
         return self.count
 
     def observe(self, s: TelemetrySample) -> None:
-        """Append one cycle (loop thread, ~1 us); a no-op when no trial is active."""
+        """:meth:`observe_row` for a sample (tests and tools; the loop writes rows)."""
+        if self._rows is not None:
+            row = np.full(ring.WIDTH, np.nan)
+            ring.encode(s, row)
+            self.observe_row(row)
+
+    def observe_row(self, row: Any) -> None:
+        """Append one cycle from its telemetry row (:mod:`mmctl.telemetry.ring`; loop
+        thread, ~2 us); a no-op when no trial is active.  The recording holds the same
+        row, so metrics recomputed from it see the same floats."""
         rows = self._rows
         if rows is None:
             return
+        cycle, t = int(row[ring.CYCLE]), float(row[ring.T])
         if rows.start_cycle < 0:
-            rows.start_cycle = s.cycle
+            rows.start_cycle = cycle
             if self.on_event is not None:
-                self.on_event(Event(s.cycle, s.t, f"trial {rows.trial} start", entity=BRACKET,
-                                    values={"trial": rows.trial, "start_cycle": s.cycle}))
-        rows.e.append(float(s.e_total))
-        rows.f.append(norm3(s.f_h))
-        rows.v.append(norm3(s.v))
-        rows.p = s.p
-        rows.p_des = s.p_des
-        rows.stop_cycle = s.cycle
-        rows.stop_t = s.t
+                self.on_event(Event(cycle, t, f"trial {rows.trial} start", entity=BRACKET,
+                                    values={"trial": rows.trial, "start_cycle": cycle}))
+        rows.e.append(float(row[ring.E_TOTAL]))
+        rows.f.append(norm3(row[ring.F_H]))
+        rows.v.append(norm3(row[ring.V]))
+        rows.p = row[ring.P].copy()
+        rows.p_des = row[ring.P_DES].copy()
+        rows.stop_cycle = cycle
+        rows.stop_t = t
 
     def stop(self) -> TrialRows:
         """End the active trial (loop thread, O(1)); pass the result to :meth:`finish`."""

@@ -1,0 +1,253 @@
+"""The loop's telemetry samples as rows of a bounded single-producer ring.
+
+One row of float64 per control cycle (:data:`WIDTH` columns, named below), in one
+buffer with a small int64 header: the write count (head), the read count (tail), the
+drop counter and the published counter.  The buffer is either a private numpy array
+(the publisher is a thread of the daemon) or a memory-mapped file that a child process
+maps too (``telemetry.process``): then the publisher's work, rerun's included, never
+takes the daemon's interpreter lock.
+
+Producer (the loop thread), :meth:`SampleRing.put`: if ``head - tail`` reaches the
+capacity the sample is dropped and counted; otherwise it fills row ``head % size``
+and only then stores ``head + 1``.  Consumer (the publisher), :meth:`SampleRing.take`:
+copies rows ``tail .. head - 1`` and only then stores the new tail.  Each counter has
+one writer, so no lock is taken and the loop never waits.  Across processes this relies
+on stores becoming visible in program order (x86-64's memory model; CPython does not
+reorder them).
+
+Besides the sample, a row carries the loop timing of the *previous* cycle (read from
+the loop's :class:`~mmctl.runtime.timing.TimingRing` when the row is written: the
+current cycle is not finished yet), so a publisher in another process still plots loop
+slack and compute time.
+"""
+
+from __future__ import annotations
+
+import math
+import mmap
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmctl.config.control import STRATEGIES
+from mmctl.telemetry.sample import TelemetrySample
+
+F64 = NDArray[np.float64]
+
+# -- row layout ----------------------------------------------------------------------------
+CYCLE, T, MODE, SAFETY = 0, 1, 2, 3
+#: timing of the previous cycle [ns]: latency, compute, slack, missed (NaN: unknown)
+PREV_LATENCY, PREV_COMPUTE, PREV_SLACK, PREV_MISSED = 4, 5, 6, 7
+Q_A = slice(8, 14)
+BASE_POSE = slice(14, 17)
+F_H = slice(17, 23)
+V_D = slice(23, 29)
+V = slice(29, 35)
+QD_CMD = slice(35, 44)
+WHEELS = slice(44, 48)
+E_TOTAL, E_ARM, E_BASE = 48, 49, 50
+ENERGY = slice(48, 51)
+P = slice(51, 54)
+P_DES = slice(54, 57)
+WIDTH = 57
+
+#: mode labels a row can carry (``TelemetrySample.mode``), by code
+MODES: tuple[str, ...] = tuple(
+    label for s in STRATEGIES
+    for label in ((f"{s}/manipulation", f"{s}/locomotion") if s == "switch" else (s,))
+) + ("idle",)
+#: safety states a row can carry (``TelemetrySample.safety``), by code
+SAFETY_STATES: tuple[str, ...] = ("disarmed", "armed", "fault")
+_MODE_CODE = {m: float(i) for i, m in enumerate(MODES)}
+_SAFETY_CODE = {s: float(i) for i, s in enumerate(SAFETY_STATES)}
+UNKNOWN = "?"
+
+# -- header (int64) --------------------------------------------------------------------------
+_HEAD, _TAIL, _DROPPED, _PUBLISHED = 0, 1, 2, 3
+_HEADER = 8  #: int64 slots (4 spare)
+_NAN4 = (math.nan,) * 4
+
+
+def mode_code(label: str) -> float:
+    """The row code of a mode label (-1: not one of :data:`MODES`)."""
+    return _MODE_CODE.get(label, -1.0)
+
+
+def safety_code(label: str) -> float:
+    """The row code of a safety state (-1: not one of :data:`SAFETY_STATES`)."""
+    return _SAFETY_CODE.get(label, -1.0)
+
+
+def label(table: tuple[str, ...], code: float) -> str:
+    """A code back to its label (:data:`UNKNOWN` when out of range)."""
+    i = int(code) if math.isfinite(code) else -1
+    return table[i] if 0 <= i < len(table) else UNKNOWN
+
+
+class SampleRing:
+    """Bounded ring of sample rows (see the module docstring).
+
+    size: capacity in rows (> 0); buffer: where the header and rows live (None: a
+    private array; see :meth:`create_file` / :meth:`attach_file`); timing: the loop's
+    TimingRing, read by :meth:`put` for the previous cycle's timing (None: NaN).
+    """
+
+    def __init__(self, size: int, buffer: Any = None, timing: Any = None):
+        if size <= 0:
+            raise ValueError(f"size must be > 0, got {size}")
+        self.size = size
+        nbytes = self.nbytes(size)
+        if buffer is None:
+            buffer = bytearray(nbytes)
+        if len(buffer) < nbytes:
+            raise ValueError(f"buffer holds {len(buffer)} bytes, {nbytes} needed for {size} rows")
+        self._buffer = buffer
+        self._hdr = np.frombuffer(buffer, np.int64, _HEADER)
+        self.rows = np.frombuffer(buffer, np.float64, size * WIDTH,
+                                  _HEADER * 8).reshape(size, WIDTH)
+        self.timing = timing
+        self._claimed = 0
+        self._file: Path | None = None
+
+    @staticmethod
+    def nbytes(size: int) -> int:
+        return 8 * (_HEADER + size * WIDTH)
+
+    # -- shared between processes ------------------------------------------------------
+    @classmethod
+    def create_file(cls, size: int, directory: str | None = None,
+                    timing: Any = None) -> SampleRing:
+        """A ring in a new memory-mapped file (in /dev/shm when it exists) that
+        :meth:`attach_file` maps in another process; :meth:`unlink` removes the file."""
+        base = directory or ("/dev/shm" if os.path.isdir("/dev/shm") else None)
+        import tempfile
+
+        fd, name = tempfile.mkstemp(prefix="mmctl-telemetry-", suffix=".ring", dir=base)
+        try:
+            os.ftruncate(fd, cls.nbytes(size))
+            mm = mmap.mmap(fd, cls.nbytes(size))
+        finally:
+            os.close(fd)
+        ring = cls(size, mm, timing)
+        ring._file = Path(name)
+        return ring
+
+    @classmethod
+    def attach_file(cls, path: str, size: int) -> SampleRing:
+        """Map the ring another process created with :meth:`create_file`."""
+        fd = os.open(path, os.O_RDWR)
+        try:
+            mm = mmap.mmap(fd, cls.nbytes(size))
+        finally:
+            os.close(fd)
+        return cls(size, mm)
+
+    @property
+    def path(self) -> str | None:
+        """The backing file (None: private memory, or already unlinked)."""
+        return str(self._file) if self._file is not None else None
+
+    def unlink(self) -> None:
+        """Remove the backing file (the mappings stay valid); idempotent."""
+        if self._file is not None:
+            self._file.unlink(missing_ok=True)
+            self._file = None
+
+    # -- producer --------------------------------------------------------------------------
+    def claim(self) -> F64 | None:
+        """The next free row, its timing columns filled (the loop's hot path), or None
+        when the ring is full (the sample is dropped and counted).  Fill the rest, then
+        :meth:`commit`.  Never blocks."""
+        hdr = self._hdr
+        head = int(hdr[_HEAD])
+        if head - int(hdr[_TAIL]) >= self.size:
+            hdr[_DROPPED] += 1
+            return None
+        row = self.rows[head % self.size]
+        timing = self.timing
+        prev = timing.last() if timing is not None else None  # (deadline, latency, ...)
+        row[PREV_LATENCY:PREV_MISSED + 1] = prev[1:] if prev is not None else _NAN4
+        self._claimed = head
+        return row
+
+    def commit(self) -> None:
+        """Publish the row :meth:`claim` returned."""
+        self._hdr[_HEAD] = self._claimed + 1
+
+    def put(self, s: TelemetrySample) -> bool:
+        """Append one sample; False if the ring was full (dropped, counted)."""
+        row = self.claim()
+        if row is None:
+            return False
+        encode(s, row)
+        self.commit()
+        return True
+
+    # -- consumer --------------------------------------------------------------------------
+    def take(self, limit: int | None = None) -> F64:
+        """Remove and return the queued rows, oldest first ((n, WIDTH) copy)."""
+        hdr = self._hdr
+        tail = int(hdr[_TAIL])
+        n = int(hdr[_HEAD]) - tail
+        if limit is not None:
+            n = min(n, limit)
+        if n <= 0:
+            return np.empty((0, WIDTH))
+        idx = np.arange(tail, tail + n) % self.size
+        out = self.rows[idx]  # fancy indexing copies
+        hdr[_TAIL] = tail + n
+        return out
+
+    def mark_published(self, n: int) -> None:
+        """Count ``n`` rows as handed to the sink (consumer side)."""
+        self._hdr[_PUBLISHED] += n
+
+    # -- counters (any side) -----------------------------------------------------------------
+    @property
+    def accepted(self) -> int:
+        return int(self._hdr[_HEAD])
+
+    @property
+    def taken(self) -> int:
+        return int(self._hdr[_TAIL])
+
+    @property
+    def dropped(self) -> int:
+        return int(self._hdr[_DROPPED])
+
+    @property
+    def published(self) -> int:
+        return int(self._hdr[_PUBLISHED])
+
+    def __len__(self) -> int:
+        return int(self._hdr[_HEAD]) - int(self._hdr[_TAIL])
+
+
+def encode(s: TelemetrySample, row: F64) -> None:
+    """Write a sample into a row (all but the timing columns)."""
+    row[:PREV_LATENCY] = (s.cycle, s.t, _MODE_CODE.get(s.mode, -1.0),
+                          _SAFETY_CODE.get(s.safety, -1.0))
+    np.concatenate((s.q_a, s.base_pose, s.f_h, s.v_d, s.v, s.qd_cmd, s.wheels_cmd,
+                    (s.e_total, s.e_arm, s.e_base), s.p, s.p_des), out=row[Q_A.start:])
+
+
+def sample_of(row: F64) -> TelemetrySample:
+    """One row back to its :class:`TelemetrySample` (for the 3-D frame and tests)."""
+    return TelemetrySample(
+        cycle=int(row[CYCLE]), t=float(row[T]), q_a=row[Q_A].copy(),
+        base_pose=row[BASE_POSE].copy(), f_h=row[F_H].copy(), v_d=row[V_D].copy(),
+        v=row[V].copy(), qd_cmd=row[QD_CMD].copy(), wheels_cmd=row[WHEELS].copy(),
+        e_total=float(row[E_TOTAL]), e_arm=float(row[E_ARM]), e_base=float(row[E_BASE]),
+        p=row[P].copy(), p_des=row[P_DES].copy(), mode=label(MODES, float(row[MODE])),
+        safety=label(SAFETY_STATES, float(row[SAFETY])))
+
+
+def rows_of(samples: list[TelemetrySample]) -> F64:
+    """Samples as rows, the way :meth:`SampleRing.put` writes them (timing unknown)."""
+    out = np.full((len(samples), WIDTH), math.nan)
+    for s, row in zip(samples, out, strict=True):
+        encode(s, row)
+    return out

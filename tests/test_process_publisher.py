@@ -1,0 +1,92 @@
+"""ProcessPublisher: the whole publisher in a child process, fed through a ring in a
+shared file -- a recording read back, trial events carried over, start-up errors named,
+a dead child reported (never a hang, never a blocked producer)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from mmctl.config import default_config
+from mmctl.runtime.timing import TimingRing
+from mmctl.telemetry import layout
+from mmctl.telemetry.process_publisher import ProcessPublisher
+from mmctl.telemetry.recording import load_recording
+from mmctl.telemetry.rerun_sink import Destinations, TelemetryError
+from mmctl.telemetry.synthetic import synthetic_samples
+from mmctl.telemetry.trial import TrialTracker
+
+N = 600
+WAIT = 60.0
+
+
+def test_the_child_writes_the_recording_from_the_shared_ring(tmp_path: Path) -> None:
+    path = tmp_path / "child.rrd"
+    timing = TimingRing(N + 1)
+    pub = ProcessPublisher(Destinations(record=str(path)), recording_name="test",
+                           static={"period_s": 0.002, "loop_rate_hz": 500.0},
+                           robot=default_config().robot, scene_rate_hz=50.0, timing=timing)
+    pub.start()
+    child = pub.pid
+    assert child is not None and child != os.getpid()
+    assert pub.ring is not None and pub.ring.path is None  # unlinked once mapped by both
+    tracker = TrialTracker(0.002, pub.post_event)  # its events cross to the child
+    rows = None
+    for s in synthetic_samples(N):
+        if s.cycle:
+            timing.record(s.cycle * 2_000_000, 7_000, 300_000, 1_600_000, 0)
+        if s.cycle == 100:
+            tracker.start()
+        tracker.observe(s)
+        if s.cycle == 499:
+            rows = tracker.stop()
+        assert pub.put(s)
+    assert rows is not None
+    live = tracker.finish(rows)
+    assert pub.wait_published(N, WAIT)
+    pub.close()
+    assert pub.pid is None  # the child ended after the last flush
+    stats = pub.stats()
+    assert stats["published"] == N and stats["dropped"] == 0 and stats["batches"] >= 1
+    rec = load_recording(path)
+    assert len(rec.cycle) == N and rec.period == 0.002
+    sent = [s.e_total for s in synthetic_samples(N)]
+    assert rec.series[layout.ENERGY.path][:, 0].tolist() == sent
+    (trial,) = rec.trials
+    assert (trial.start_cycle, trial.stop_cycle) == (100, 499)
+    assert trial.logged is not None and trial.logged["E"] == live.as_dict()["E"]
+    assert trial.logged["x_f"] == live.as_dict()["x_f"]
+
+
+def test_an_unusable_destination_is_a_named_error_at_start(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    pub = ProcessPublisher(Destinations(record=str(blocker / "x.rrd")))
+    with pytest.raises(TelemetryError):
+        pub.start()
+    assert pub.pid is None
+    with pytest.raises(TelemetryError, match="not running"):
+        pub.put(next(synthetic_samples(1)))
+
+
+def test_a_dead_child_is_reported_and_the_producer_never_blocks(tmp_path: Path) -> None:
+    pub = ProcessPublisher(Destinations(record=str(tmp_path / "dead.rrd")), queue_size=32,
+                           close_timeout=5.0)
+    pub.start()
+    pid = pub.pid
+    assert pid is not None
+    os.kill(pid, signal.SIGKILL)
+    deadline = time.monotonic() + WAIT
+    while pub.error is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert isinstance(pub.error, TelemetryError)
+    kept = [pub.put(s) for s in synthetic_samples(100)]  # nobody reads: the ring fills up
+    assert kept.count(True) == 32 and pub.stats()["dropped"] == 68
+    assert not pub.wait_published(1, 1.0)
+    with pytest.raises(TelemetryError):
+        pub.close()
+    assert pub.pid is None
