@@ -46,7 +46,7 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
         assert 0.0 < fig["compute_p50_us"] <= fig["compute_p99_us"] <= fig["compute_max_us"]
         assert fig["latency_p50_us"] <= fig["latency_p99_us"] <= fig["latency_p999_us"]
     tel = rep["telemetry"]
-    assert tel["phases"] == 10 and tel["off"]["cycles"] > 0 and tel["on"]["cycles"] > 0
+    assert tel["phases"] == 20 and tel["off"]["cycles"] > 0 and tel["on"]["cycles"] > 0
     assert tel["published"] > 0  # the "on" windows' samples reached the recording
     assert tel["publisher"] == ("process" if process else "thread")
     assert 0.0 < tel["hook_p50_us"] <= tel["hook_p99_us"]  # the hook ran in the "on" windows

@@ -45,3 +45,28 @@ def test_busy_ring_keeps_closed_intervals_in_order() -> None:
     assert ring.count == 6
     assert len(starts) == 3  # size - 1 kept (the slot being written is never read)
     assert np.all(ends >= starts) and np.all(np.diff(starts) >= 0)
+
+
+def test_pairwise_growth_ignores_a_burst_in_one_pair() -> None:
+    from mmctl.telemetry.overhead import Phase, _pairs, _report
+
+    def phase(on: bool, compute_us: float, burst: bool = False, missed: int = 0) -> Phase:
+        compute = np.full(1000, compute_us * 1e3, dtype=np.int64)
+        if burst:
+            compute[:50] *= 5  # 5 % of the cycles: moves p99, not the median of the pairs
+        late = np.zeros(1000, np.int64)
+        late[:missed] = 1
+        rows = [(i * P, 0, int(c), int(m)) for i, (c, m) in enumerate(zip(compute, late))]
+        return Phase(on, snap(rows), 1000 if on else 0, 0, 0.0)
+
+    phases = [phase(False, 300), phase(True, 315, missed=1),   # +5 %, one more miss
+              phase(False, 300), phase(True, 315, burst=True),  # a burst in one "on" window
+              phase(False, 300), phase(True, 315)]
+    out = _pairs(phases)
+    assert out["compute_p99_growth_pairs"] == [0.05, 4.25, 0.05]  # 1575 / 300 - 1
+    assert out["compute_p99_growth_pair_median"] == 0.05
+    assert out["extra_misses_pairs"] == [1, 0, 0]
+    pooled = _report(phases)
+    assert pooled["compute_p99_growth"] > 1.0  # the pooled p99 took the burst
+    assert pooled["compute_p99_growth_pair_median"] == 0.05
+    assert _pairs(phases[:1]) == {}

@@ -44,8 +44,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "loop.cpu_dma_latency); needs write access to /dev/cpu_dma_latency")
     p.add_argument("--telemetry", action="store_true",
                    help="also time the daemon's loop with telemetry off vs on (a publisher "
-                        "recording to a temporary .rrd) in alternating windows of the same "
+                        "recording to a temporary .rrd) in --windows pairs of alternating windows of the same "
                         "run, --seconds in all; JSON key 'telemetry'")
+    p.add_argument("--telemetry-aa", action="store_true",
+                   help="--telemetry as an A/A check: the 'on' windows install no hook "
+                        "either (the growth it prints is the comparison's own noise)")
 
 
 def _figures(snap: Any, step_us: Any) -> dict[str, float | int]:
@@ -73,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.seconds <= 0:
         raise MmctlError(f"--seconds {args.seconds:g}: must be > 0")
+    args.telemetry = args.telemetry or args.telemetry_aa
     if args.windows < 1:
         raise MmctlError(f"--windows {args.windows}: must be >= 1")
     if args.cpu_dma_latency is not None and not -1 <= args.cpu_dma_latency <= MAX_US:
@@ -155,7 +159,8 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         if args.telemetry:
             from mmctl.telemetry.overhead import windows_on_daemon
 
-            result["telemetry"] = windows_on_daemon(daemon, args.seconds, phases=10)
+            result["telemetry"] = windows_on_daemon(daemon, args.seconds, phases=2 * args.windows,
+                                                    aa=args.telemetry_aa)
             result["telemetry"]["armed_at_end"] = daemon.safety.armed
     finally:
         daemon.shutdown()

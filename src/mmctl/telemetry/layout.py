@@ -7,7 +7,7 @@ Two timelines index everything: ``cycle`` (sequence: the loop cycle index k) and
 Three rates:
 
 * **full** — one row per published cycle: the inputs of the trial metrics (paper
-  eq. 14-16) and the loop timing.  A recording holds every cycle the queue did not drop,
+  eq. 14-16) and the loop timing.  A recording holds every cycle the ring did not drop,
   so metrics recomputed from it equal the daemon's.
 * **plot** — every ``round(loop rate / telemetry.plot_rate)``-th cycle.
 * **scene** — the 3-D robot, the newest sample at each publisher wake-up

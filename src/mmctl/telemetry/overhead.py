@@ -64,7 +64,7 @@ def run_phase(cfg: Config, body_for: BodyFactory, seconds: float, telemetry: boo
     service = TelemetryService(cfg, Destinations(record=str(record)) if telemetry else None)
     loop_box: dict[str, Any] = {}
     origin = time.perf_counter_ns()
-    service.start(ring)
+    service.start(ring, origin)
     body = body_for(service, origin)
 
     def counted(tick: Tick) -> None:
@@ -133,6 +133,28 @@ def overlapping_misses(snap: TimingSnapshot, lead_ns: int, starts: np.ndarray,
     return n
 
 
+def _pairs(phases: list[Phase]) -> dict[str, Any]:
+    """Growth of compute p99 within each adjacent (off, on) window pair, and its median.
+
+    The pooled p99 of each condition is what the target speaks of, but a burst of load
+    from elsewhere on the machine that lands in a few windows moves it; the median of
+    the pairwise growths ignores such a burst unless it hits most pairs.
+    """
+    growths, extra_misses = [], []
+    for off, on in zip(phases[::2], phases[1::2], strict=False):
+        if off.telemetry or not on.telemetry or not len(off.snapshot) or not len(on.snapshot):
+            continue
+        p_off = float(np.percentile(off.snapshot.compute_ns, 99))
+        p_on = float(np.percentile(on.snapshot.compute_ns, 99))
+        growths.append(p_on / p_off - 1.0)
+        extra_misses.append(int(on.snapshot.missed.sum()) - int(off.snapshot.missed.sum()))
+    if not growths:
+        return {}
+    return {"compute_p99_growth_pairs": [round(g, 4) for g in growths],
+            "compute_p99_growth_pair_median": round(float(np.median(growths)), 4),
+            "extra_misses_pairs": extra_misses}
+
+
 def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = None,
             lead_ns: int = 0, hook_ns: np.ndarray | None = None) -> dict[str, Any]:
     s_off, s_on = _pool(phases, False), _pool(phases, True)
@@ -148,6 +170,7 @@ def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = No
         "dropped": sum(p.dropped for p in phases),
         "flush_max_us": max(p.flush_max_us for p in phases),
         "phases": len(phases),
+        **_pairs(phases),
     }
     if hook_ns is not None:
         on_hook = np.concatenate([cycle_rows(hook_ns, p.snapshot) for p in phases if p.telemetry]
@@ -165,7 +188,7 @@ def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = No
 
 
 def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
-                      record_dir: Path | None = None) -> dict[str, Any]:
+                      record_dir: Path | None = None, aa: bool = False) -> dict[str, Any]:
     """Alternate telemetry off/on windows of ``seconds / phases`` on a running daemon.
 
     daemon: started (loop running) and armed, with ``cfg``, ``ring``, ``sample_hook`` and
@@ -174,7 +197,8 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
     loop builds samples, the publisher batches and sends them), an "off" window removes
     it (the publisher idles).  Many short windows average out the machine's drift.
     Returns the same dict as :func:`compare`.  The daemon's ring must hold at least one
-    window of cycles.
+    window of cycles.  aa: an A/A check -- the "on" windows install no hook either, so
+    the figures measure the noise of the comparison itself.
     """
     import time
 
@@ -190,13 +214,13 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
     done: list[Phase] = []
     service = TelemetryService(cfg, Destinations(record=str(record_dir / "bench.rrd")))
     try:
-        service.start(ring)
+        service.start(ring, daemon._t0_ns)
         pub = service.publisher
         hook = service.hook(daemon.core)
         time.sleep(1.0)  # start-up (the publisher's process, rerun's threads) is not steady state
         for i in range(n):
             on = i % 2 == 1
-            daemon.sample_hook = hook if on else None
+            daemon.sample_hook = hook if on and not aa else None
             time.sleep(settle)  # the last batch of an "on" window is still being sent
             c0, p0, d0 = ring.count, pub.published, pub.ring.dropped
             time.sleep(window)
@@ -215,6 +239,7 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
             tmp.cleanup()
     rep = _report(done, busy, daemon.loop.spin_margin_ns, daemon.hook_ns)
     rep["publisher"] = "process" if cfg.telemetry.process else "thread"
+    rep["aa"] = aa
     rep["flush_max_us"] = max(rep["flush_max_us"], pub.flush_ns_max / 1e3)  # a child's: at close
     return rep
 
@@ -230,6 +255,10 @@ def format_report(r: dict[str, Any]) -> str:
                      f"{s['compute_p99_us']:>8.1f} {s['compute_max_us']:>8.1f} "
                      f"{s['latency_p50_us']:>11.1f} {s['latency_p99_us']:>8.1f} "
                      f"{s['latency_max_us']:>8.1f} {s['missed']:>6}")
+    if "compute_p99_growth_pair_median" in r:
+        lines.append(f"compute p99 growth within each off/on window pair: median "
+                     f"{100 * r['compute_p99_growth_pair_median']:+.1f} % over "
+                     f"{len(r['compute_p99_growth_pairs'])} pairs")
     lines.append(f"compute p99 growth with telemetry: {100 * r['compute_p99_growth']:+.1f} %; "
                  f"published {r['published']} samples, dropped {r['dropped']}, "
                  f"longest flush {r['flush_max_us']:.0f} us ({r['phases']} alternating phases)")

@@ -43,7 +43,7 @@ class Recording(NamedTuple):
 
     cycle: (n,) cycle indices; time_ns: (n,) [ns]; series: full-rate path -> (n, k);
     trials: brackets in start order; info: the static ``telemetry/info`` values
-    (``period_s``, ``loop_rate_hz``, ...); dropped: samples the queue dropped (the last
+    (``period_s``, ``loop_rate_hz``, ...); dropped: samples the ring dropped (the last
     ``plots/telemetry/dropped`` value).
     """
 
