@@ -33,6 +33,8 @@ def test_the_child_writes_the_recording_from_the_shared_ring(tmp_path: Path) -> 
     pub.start()
     child = pub.pid
     assert child is not None and child != os.getpid()
+    # background work: it only gets a CPU nothing else wants
+    assert os.sched_getscheduler(child) == os.SCHED_IDLE
     assert pub.ring is not None and pub.ring.path is None  # unlinked once mapped by both
     tracker = TrialTracker(0.002, pub.post_event)  # its events cross to the child
     rows = None

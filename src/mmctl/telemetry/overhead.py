@@ -64,7 +64,7 @@ def run_phase(cfg: Config, body_for: BodyFactory, seconds: float, telemetry: boo
     service = TelemetryService(cfg, Destinations(record=str(record)) if telemetry else None)
     loop_box: dict[str, Any] = {}
     origin = time.perf_counter_ns()
-    service.start(ring, origin)
+    service.start(ring)
     body = body_for(service, origin)
 
     def counted(tick: Tick) -> None:
@@ -214,7 +214,7 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
     done: list[Phase] = []
     service = TelemetryService(cfg, Destinations(record=str(record_dir / "bench.rrd")))
     try:
-        service.start(ring, daemon._t0_ns)
+        service.start(ring)
         pub = service.publisher
         hook = service.hook(daemon.core)
         time.sleep(1.0)  # start-up (the publisher's process, rerun's threads) is not steady state

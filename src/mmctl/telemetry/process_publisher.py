@@ -6,7 +6,7 @@ call); on the simulated robot the fake devices need that lock in the loop's idle
 too, and on a 2-core machine the loop's compute p99 grew by 15-30 % with it.  Here the
 daemon's only telemetry work is the loop's :meth:`SampleRing.put
 <mmctl.telemetry.ring.SampleRing.put>` into a memory-mapped ring; a child process
-(``spawn``: a fresh interpreter, at ``nice +10``) maps the same ring and runs the whole
+(``spawn``: a fresh interpreter, at ``SCHED_IDLE``) maps the same ring and runs the whole
 publisher there: batching, the 3-D frame (its own Pinocchio model), Arrow, rerun.
 
 The ring file is created in /dev/shm (else the temp directory) and unlinked as soon as
@@ -36,7 +36,7 @@ from mmctl.config.robot import RobotConfig
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.queue import DropQueue
 from mmctl.telemetry.rerun_sink import Destinations, TelemetryError
-from mmctl.telemetry.ring import RowClock, SampleRing
+from mmctl.telemetry.ring import SampleRing
 
 log = structlog.get_logger("mmctl.telemetry")
 
@@ -52,10 +52,7 @@ class ProcessPublisher:
     :class:`~mmctl.telemetry.rerun_sink.RerunSink`; robot: the model for the 3-D view
     (None: no 3-D view); rates and queue_size: as for
     :class:`~mmctl.telemetry.publisher.Publisher`; timing: the loop's TimingRing (the
-    rows' previous-cycle timing); origin_ns: the loop's t = 0 [perf_counter ns]: the
-    child then paces its work into the loop's idle time (:class:`RowClock
-    <mmctl.telemetry.ring.RowClock>`), None: it does not; spin_margin_s: the loop's spin
-    margin [s]; start_timeout / close_timeout [s]: how long
+    rows' previous-cycle timing); start_timeout / close_timeout [s]: how long
     :meth:`start` waits for the child to open the destinations and :meth:`close` for
     its last flush.
     """
@@ -67,15 +64,13 @@ class ProcessPublisher:
                  mecanum: MecanumConfig | None = None, robot: RobotConfig | None = None,
                  loop_rate_hz: float = 500.0, plot_rate_hz: float = 100.0,
                  scene_rate_hz: float = 15.0, queue_size: int = 4096, timing: Any = None,
-                 origin_ns: int | None = None, spin_margin_s: float = 0.0001,
                  start_timeout: float = 60.0, close_timeout: float = 30.0):
         self.destinations = destinations
         self._child_args: dict[str, Any] = {
             "destinations": destinations, "recording_name": recording_name,
             "static": dict(static or {}), "mecanum": mecanum, "robot": robot,
             "loop_rate_hz": loop_rate_hz, "plot_rate_hz": plot_rate_hz,
-            "scene_rate_hz": scene_rate_hz, "origin_ns": origin_ns,
-            "spin_margin_s": spin_margin_s}
+            "scene_rate_hz": scene_rate_hz}
         self.queue_size = queue_size
         self.timing = timing
         self.start_timeout = start_timeout
@@ -252,7 +247,7 @@ def _background() -> str:
     """Make this process background work: SCHED_IDLE (it runs only on a CPU nothing
     else wants, and any waking thread of the daemon -- one that may hold the daemon's
     interpreter lock the loop needs -- preempts it at once), else ``nice +10``."""
-    if os.environ.get("MMCTL_CHILD_IDLE", "1") == "1" and hasattr(os, "SCHED_IDLE"):
+    if hasattr(os, "SCHED_IDLE"):
         try:
             os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
             return "idle"
@@ -265,8 +260,7 @@ def _background() -> str:
 def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destinations,
            recording_name: str, static: dict[str, float | int | str],
            mecanum: MecanumConfig | None, robot: RobotConfig | None, loop_rate_hz: float,
-           plot_rate_hz: float, scene_rate_hz: float, origin_ns: int | None,
-           spin_margin_s: float) -> None:
+           plot_rate_hz: float, scene_rate_hz: float) -> None:
     """The child: map the ring, open the sink, run the publisher until told to close."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -284,10 +278,8 @@ def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destina
             scene = SceneBuilder(robot)
         sink = RerunSink(destinations, recording_name=recording_name, static=static,
                          mecanum=mecanum)
-        clock = RowClock(ring, origin_ns) if origin_ns is not None else None
         pub = Publisher(sink, loop_rate_hz=loop_rate_hz, plot_rate_hz=plot_rate_hz,
-                        scene_rate_hz=scene_rate_hz, ring=ring, timing=clock, scene=scene,
-                        spin_margin_s=spin_margin_s, pace=clock is not None)
+                        scene_rate_hz=scene_rate_hz, ring=ring, scene=scene, pace=False)
         pub.start()
         conn.send(("ready",))
         while True:

@@ -254,30 +254,3 @@ def rows_of(samples: list[TelemetrySample]) -> F64:
         encode(s, row)
     return out
 
-
-class RowClock:
-    """The loop's progress as seen from the ring, for a
-    :class:`~mmctl.telemetry.pacer.LoopPacer` in another process (which cannot read the
-    loop's TimingRing).
-
-    The newest row was written near the end of its cycle (the telemetry hook runs after
-    the commands went out), so it stands for "this cycle's body is about done": ``last``
-    gives its deadline [perf_counter ns, the same CLOCK_MONOTONIC in every process] from
-    the row's ``t`` and the loop's origin ``origin_ns``.  Wake latency, compute and slack
-    of that cycle are not known yet (0), nor whether it will run late (missed 0).
-    """
-
-    def __init__(self, ring: SampleRing, origin_ns: int):
-        self.ring = ring
-        self.origin_ns = int(origin_ns)
-
-    @property
-    def count(self) -> int:
-        return self.ring.accepted
-
-    def last(self) -> tuple[int, int, int, int, int] | None:
-        head = self.ring.accepted
-        if head == 0:
-            return None
-        t = float(self.ring.rows[(head - 1) % self.ring.size, T])
-        return (self.origin_ns + round(t * 1e9), 0, 0, 0, 0)

@@ -12,7 +12,6 @@ except while a trial is bracketed, when it fills a scratch row for the tracker.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -68,11 +67,11 @@ class TelemetryService:
         """True when samples go to rerun."""
         return self.destinations.any
 
-    def start(self, ring: Any = None, origin_ns: int | None = None) -> None:
+    def start(self, ring: Any = None) -> None:
         """Open the destinations and start the publisher (no-op when disabled).
 
-        ring: the loop's TimingRing (loop timing in the rows, pacing); origin_ns: the
-        loop's t = 0 [perf_counter ns] (a child publisher paces itself with it).
+        ring: the loop's TimingRing (loop timing in the rows; the thread publisher's
+        pacing).
         """
         if not self.enabled or self.publisher is not None:
             return
@@ -91,9 +90,7 @@ class TelemetryService:
                 self.destinations, recording_name=cfg.name, static=static,
                 mecanum=cfg.base.mecanum, robot=cfg.robot, loop_rate_hz=cfg.loop.rate_hz,
                 plot_rate_hz=t.plot_rate, scene_rate_hz=t.scene_rate,
-                queue_size=t.queue_size, timing=ring,
-                origin_ns=origin_ns if os.environ.get("MMCTL_CHILD_PACE") == "1" else None,
-                spin_margin_s=cfg.loop.spin_margin)
+                queue_size=t.queue_size, timing=ring)
         else:
             sink = RerunSink(self.destinations, recording_name=cfg.name, static=static,
                              mecanum=cfg.base.mecanum)
