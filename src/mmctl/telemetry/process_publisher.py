@@ -34,14 +34,14 @@ import structlog
 from mmctl.config.base import MecanumConfig
 from mmctl.config.robot import RobotConfig
 from mmctl.telemetry.events import Event
+from mmctl.telemetry.publisher import EVENT_QUEUE_SIZE
 from mmctl.telemetry.queue import DropQueue
 from mmctl.telemetry.rerun_sink import Destinations, TelemetryError
 from mmctl.telemetry.ring import SampleRing
 
 log = structlog.get_logger("mmctl.telemetry")
 
-NICE = 10  #: the child's niceness increment (a process may always lower its priority)
-EVENT_QUEUE_SIZE = 1024
+NICE = 10  #: the child's niceness increment where SCHED_IDLE is refused
 
 
 class ProcessPublisher:
@@ -243,18 +243,17 @@ class ProcessPublisher:
         log.error("telemetry_process_failed", error=repr(self.error))
 
 
-def _background() -> str:
+def _background() -> None:
     """Make this process background work: SCHED_IDLE (it runs only on a CPU nothing
     else wants, and any waking thread of the daemon -- one that may hold the daemon's
     interpreter lock the loop needs -- preempts it at once), else ``nice +10``."""
     if hasattr(os, "SCHED_IDLE"):
         try:
             os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-            return "idle"
+            return
         except OSError:
             pass
     os.nice(NICE)
-    return f"nice+{NICE}"
 
 
 def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destinations,

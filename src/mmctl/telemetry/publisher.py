@@ -11,8 +11,8 @@ every queued row and hands the sink
 * one 3-D scene frame (the newest sample) and the queued events,
 
 in one batch.  It runs as a thread of the daemon (:meth:`Publisher.start`), paced into
-the loop's idle time, or as the body of a child process that maps the ring from a file
-(:mod:`mmctl.telemetry.process_publisher`, :meth:`Publisher.run`).  An exception in the
+the loop's idle time, or in a child process that maps the ring from a file
+(:mod:`mmctl.telemetry.process_publisher`).  An exception in the
 thread is logged, stored in :attr:`Publisher.error` and re-raised by
 :meth:`Publisher.close`; the loop is never affected (the ring just fills up and counts
 drops).
@@ -29,7 +29,7 @@ import numpy as np
 import structlog
 
 from mmctl.telemetry import layout
-from mmctl.telemetry import ring as rows_
+from mmctl.telemetry import ring as tr
 from mmctl.telemetry.batch import Columns, full_rate, loop_timing, plot_rate, plot_stride
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.pacer import LoopPacer
@@ -175,7 +175,7 @@ class Publisher:
                 self._progress.notify_all()
 
     def run(self) -> None:
-        """Flush ``scene_rate`` times a second until :meth:`stop`; a last flush then."""
+        """Flush ``scene_rate`` times a second until :meth:`close`; a last flush then."""
         next_wake = time.monotonic()
         while True:
             next_wake += self.wake_period
@@ -185,10 +185,6 @@ class Publisher:
                 break
             if time.monotonic() > next_wake + self.wake_period:
                 next_wake = time.monotonic()  # fell behind: do not burst to catch up
-
-    def stop(self) -> None:
-        """Make :meth:`run` return after its next (last) flush."""
-        self._stop.set()
 
     def flush(self) -> None:
         """Drain the queues into the sink once (the thread's body; tests may call it)."""
@@ -220,7 +216,7 @@ class Publisher:
                                    {layout.DROPPED.path: np.array([[float(self.ring.dropped)]])}))
             if self.scene is not None:
                 pace()
-                last = rows_.sample_of(rows[-1])
+                last = tr.sample_of(rows[-1])
                 scene = (last.cycle, last.t, self.scene.frame(last))
         self.sink.write(columns, scene, pace)
         for event in self._state_changes(rows):
@@ -239,7 +235,7 @@ class Publisher:
         """The pacer's expected wake latency + body time: p75 of the recent cycles."""
         if self.pacer is None:
             return
-        body = rows[:, rows_.PREV_LATENCY] + rows[:, rows_.PREV_COMPUTE]
+        body = rows[:, tr.PREV_LATENCY] + rows[:, tr.PREV_COMPUTE]
         busy = np.concatenate((self._busy, body[np.isfinite(body)]))[-1024:]
         self._busy = busy
         self.pacer.update(int(np.percentile(busy, 75)))
@@ -249,7 +245,7 @@ class Publisher:
         n = len(rows)
         if n == 0:
             return []
-        mode, safety = rows[:, rows_.MODE], rows[:, rows_.SAFETY]
+        mode, safety = rows[:, tr.MODE], rows[:, tr.SAFETY]
         change = np.ones(n, bool)
         change[1:] = (mode[1:] != mode[:-1]) | (safety[1:] != safety[:-1])
         if self._state is not None:
@@ -257,8 +253,8 @@ class Publisher:
         self._state = (float(mode[-1]), float(safety[-1]))
         out = []
         for i in np.flatnonzero(change):
-            m, st = rows_.label(rows_.MODES, mode[i]), rows_.label(rows_.SAFETY_STATES, safety[i])
-            out.append(Event(int(rows[i, rows_.CYCLE]), float(rows[i, rows_.T]),
+            m, st = tr.label(tr.MODES, mode[i]), tr.label(tr.SAFETY_STATES, safety[i])
+            out.append(Event(int(rows[i, tr.CYCLE]), float(rows[i, tr.T]),
                              f"mode={m} safety={st}", "ERROR" if st == "fault" else "INFO"))
         return out
 

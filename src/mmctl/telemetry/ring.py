@@ -213,10 +213,6 @@ class SampleRing:
         return int(self._hdr[_HEAD])
 
     @property
-    def taken(self) -> int:
-        return int(self._hdr[_TAIL])
-
-    @property
     def dropped(self) -> int:
         return int(self._hdr[_DROPPED])
 
