@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import threading
@@ -9,10 +10,21 @@ import threading
 import numpy as np
 import pytest
 
+from mmctl.config.base import MecanumConfig
+from mmctl.control.mecanum import wheel_matrix
 from mmctl.runtime.loop import CycleLoop
 from mmctl.runtime.timing import TimingRing
 from mmctl.telemetry import layout
-from mmctl.telemetry.batch import Columns, full_rate, norm3, norm3_rows, plot_rate, plot_stride
+from mmctl.telemetry import ring as tr
+from mmctl.telemetry.batch import (
+    Columns,
+    base_frame,
+    full_rate,
+    norm3,
+    norm3_rows,
+    plot_rate,
+    plot_stride,
+)
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.publisher import Publisher
 from mmctl.telemetry.queue import DropQueue
@@ -99,15 +111,23 @@ def test_full_and_plot_rate_columns_hold_the_sample_values() -> None:
     f = cols.values[layout.FORCE_NORM.path]
     assert f[5, 0] == pytest.approx(np.linalg.norm(samples[5].f_h[:3]), rel=1e-15)
     assert cols.values[layout.SPEED.path][3, 1] == norm3(samples[3].v)
-    assert np.array_equal(cols.values[layout.EE_POSITION_DES.path][0], samples[0].p_des)
+    # positions go out in the mobile base frame: the synthetic p_des is (0.9, 0, 1) there
+    assert np.allclose(cols.values[layout.EE_POSITION_DES.path], [0.9, 0.0, 1.0], atol=1e-12)
+    x, y, yaw = samples[9].base_pose
+    dx, dy = samples[9].p[0] - x, samples[9].p[1] - y
+    assert np.allclose(cols.values[layout.EE_POSITION.path][9],
+                       [math.cos(yaw) * dx + math.sin(yaw) * dy,
+                        -math.sin(yaw) * dx + math.cos(yaw) * dy, samples[9].p[2]], atol=1e-15)
     for s in layout.FULL_RATE:
         assert cols.values[s.path].shape == (23, len(s.names))
 
     stride = plot_stride(500.0, 100.0)
     assert stride == 5
-    plot = plot_rate(rows, stride)
+    wheels = wheel_matrix(MecanumConfig())
+    plot = plot_rate(rows, stride, wheels)
     assert list(plot.cycle) == [10, 15, 20, 25]
-    assert np.array_equal(plot.values[layout.WHEELS.path][0], samples[3].wheels_cmd)
+    assert np.allclose(plot.values[layout.WHEELS.path][0], wheels @ samples[3].qd_cmd[6:],
+                       rtol=1e-15, atol=0)
     assert np.array_equal(plot.values[layout.BASE_TWIST.path][1], samples[8].qd_cmd[6:])
     for s in layout.PLOT_RATE:
         assert plot.values[s.path].shape == (4, len(s.names))
@@ -218,7 +238,7 @@ def test_ring_rows_round_trip_and_a_full_ring_drops_new_rows() -> None:
     assert [ring.put(s) for s in sent] == [True] * 4 + [False] * 2
     assert (ring.accepted, ring.dropped, len(ring)) == (4, 2, 4)
     rows = ring.take(3)
-    assert rows.shape == (3, 57) and len(ring) == 1
+    assert rows.shape == (3, tr.WIDTH) and len(ring) == 1
     back = sample_of(rows[1])
     for name, value in sent[1]._asdict().items():
         got = getattr(back, name)
@@ -282,12 +302,10 @@ def test_telemetry_off_imports_no_rerun() -> None:
 
 # -- the loop's row writer ------------------------------------------------------------------
 def test_control_core_fills_a_row_in_the_base_frame() -> None:
-    import math
     import time
 
     from mmctl.config import default_config
     from mmctl.runtime.core import ControlCore
-    from mmctl.telemetry import ring as tr
     from mmctl.types import ArmState, Odometry, Wrench
 
     cfg = default_config()
@@ -301,20 +319,22 @@ def test_control_core_fills_a_row_in_the_base_frame() -> None:
                       0.002, active=True, now=now)
     core.set_mode("switch")
     row = np.full(tr.WIDTH, np.nan)
-    core.fill_row(r, 7, 0.014, "armed", row)
+    core.fill_row(r, 7, 0.014, "armed", (150_000, 310_000, 1_500_000, 0), row)
     assert row[tr.CYCLE] == 7 and row[tr.T] == 0.014
     assert tr.label(tr.MODES, row[tr.MODE]) == f"switch/{core.switch}"
     assert tr.label(tr.SAFETY_STATES, row[tr.SAFETY]) == "armed"
-    assert np.isnan(row[tr.PREV_LATENCY:tr.PREV_MISSED + 1]).all()  # the ring's columns
+    assert list(row[tr.PREV_LATENCY:tr.PREV_MISSED + 1]) == [150_000, 310_000, 1_500_000, 0]
     assert np.array_equal(row[tr.Q_A], r.q[:6]) and np.array_equal(row[tr.BASE_POSE], r.q[6:])
     assert np.array_equal(row[tr.F_H], r.f_h) and np.array_equal(row[tr.V_D], r.v_d)
     assert r.out is not None and np.array_equal(row[tr.V], r.out.v)
     assert np.linalg.norm(row[tr.V_D][:3]) > 0.01
     assert np.array_equal(row[tr.QD_CMD], r.qd_cmd)
-    assert np.allclose(row[tr.WHEELS], core._wheels @ r.twist)
+    assert np.array_equal(row[tr.BASE_TWIST], r.twist)
     assert row[tr.E_TOTAL] == r.energy.total
-    # world -> mobile base frame: rotate the offset from the base by -yaw
+    assert np.array_equal(row[tr.P], r.p) and np.array_equal(row[tr.P_DES], r.p_des)
+    # the consumer's world -> mobile base frame: rotate the offset from the base by -yaw
     c, s = math.cos(0.5), math.sin(0.5)
-    for world, got in ((r.p, row[tr.P]), (r.p_des, row[tr.P_DES])):
+    for world, cols in ((r.p, tr.P), (r.p_des, tr.P_DES)):
         dx, dy = world[0] - 0.4, world[1] + 0.2
-        assert np.allclose(got, [c * dx + s * dy, -s * dx + c * dy, world[2]], atol=1e-15)
+        assert np.allclose(base_frame(row[None], cols)[0],
+                           [c * dx + s * dy, -s * dx + c * dy, world[2]], atol=1e-15)

@@ -21,7 +21,6 @@ import numpy as np
 
 from mmctl.config import Config
 from mmctl.control.energy import Energy
-from mmctl.control.mecanum import wheel_matrix
 from mmctl.control.step import Controller, ControllerState, StepInputs, StepOutputs
 from mmctl.control.wrench import WrenchProcessor
 from mmctl.errors import FaultCause, MmctlError
@@ -76,7 +75,6 @@ class ControlCore:
         self.wrench = WrenchProcessor(cfg.sensor.wrench, self.dt, control_point)
         self.state: ControllerState = self.controller.initial_state()
         self.wstate = self.wrench.initial_state()
-        self._wheels = wheel_matrix(cfg.base.mecanum)
         self._sensor_frame = self.model.frame_id("sensor")
 
     # -- operator commands (loop thread) ------------------------------------------------
@@ -160,32 +158,28 @@ class ControlCore:
                            dict(details), taring, None)
 
     # -- telemetry ----------------------------------------------------------------------
-    def fill_row(self, r: CycleResult, cycle: int, t: float, safety: str, row: Any) -> None:
-        """Write this cycle into a telemetry row (:mod:`mmctl.telemetry.ring` layout) in
-        place, all but the timing columns (the ring's): the loop's telemetry hot path.
+    def fill_row(self, r: CycleResult, cycle: int, t: float, safety: str,
+                 prev: tuple[float, ...], row: Any) -> None:
+        """Write this cycle and the previous cycle's timing ``prev`` (latency, compute,
+        slack, missed [ns]) into a telemetry row (:mod:`mmctl.telemetry.ring` layout) in
+        place: the loop's telemetry hot path, one numpy call.
 
-        Positions go into the mobile base frame; ``v`` is the step's own J(q) q̇ (no
+        The row holds what the cycle has at hand (world-frame positions; the consumer
+        derives the base frame and the wheel speeds); ``v`` is the step's own J(q) q̇ (no
         second Jacobian on the loop), or J(q) q̇ from the measured velocities when the
         controller did not run.
         """
         q = r.q
         mode = self.mode if self.mode != "switch" else f"switch/{self.switch}"
-        row[:tr.PREV_LATENCY] = (cycle, t, tr.mode_code(mode), tr.safety_code(safety))
         if r.out is not None:
             v = r.out.v
         else:
             jac = self.model.jacobian(q) if math.isfinite(float(q @ q)) else np.zeros((6, 9))
             v = jac @ r.qd
-        x, y, yaw = q[6:9].tolist()
-        px, py, pz = r.p.tolist()
-        dx, dy, dz = r.p_des.tolist()
-        c, sn = math.cos(yaw), math.sin(yaw)
-        px, py, dx, dy = px - x, py - y, dx - x, dy - y
         e = r.energy
-        # one call for the rest of the row (each numpy call costs the loop ~1 us)
-        np.concatenate((q, r.f_h, r.v_d, v, r.qd_cmd, self._wheels @ r.twist,
-                        (e.total, e.arm, e.base, c * px + sn * py, -sn * px + c * py, pz,
-                         c * dx + sn * dy, -sn * dx + c * dy, dz)), out=row[tr.Q_A.start:])
+        np.concatenate(((cycle, t, tr.mode_code(mode), tr.safety_code(safety), *prev), q,
+                        r.f_h, r.v_d, v, r.qd_cmd, (e.total, e.arm, e.base), r.p, r.p_des),
+                       out=row)
 
 
 def check_mode(name: str) -> None:

@@ -7,10 +7,11 @@ One cycle (:meth:`Daemon.cycle`, on the loop thread):
    cycle's condition set (a device raising :class:`SafetyFault` names its cause);
 3. when ARMED, run the pure control step (wrench processing, admittance, IDK, limits);
    its fault (non-finite, singular) joins the set;
-4. feed the set to the :class:`~mmctl.runtime.safety.SafetyMonitor`: ARMED sends speedJ
-   and the base twist; a new fault sends speedStop and zero base velocity *in this
-   same cycle*, then disables the base;
-5. systemd watchdog ping, optional per-cycle sample hook (telemetry).
+4. feed the set to the :class:`~mmctl.runtime.safety.SafetyMonitor`: a new fault sends
+   speedStop and zero base velocity *in this same cycle*, then disables the base;
+5. the optional per-cycle sample hook (telemetry: one row into the sample ring);
+6. ARMED: send speedJ and the base twist;
+7. systemd watchdog ping.
 
 The daemon always starts DISARMED.  Shutdown (SIGTERM/SIGINT, ``mmctl stop``, the
 duration elapsing, or any exception) always ends with the stop commands sent, then the
@@ -88,7 +89,7 @@ class Daemon:
         #: time spent in the pure control chain (ControlCore.step) per cycle, indexed by
         #: cycle % size [ns]: the part of the compute time that is not device I/O
         self.step_ns = np.zeros(cfg.loop.timing_samples, np.int64)
-        #: time spent in the telemetry sample hook (build the sample, queue it) per cycle,
+        #: time spent in the telemetry sample hook (write the cycle's row) per cycle,
         #: indexed like ``step_ns`` [ns]; 0 when no hook ran: telemetry's own loop cost
         self.hook_ns = np.zeros(cfg.loop.timing_samples, np.int64)
         self.loop = CycleLoop(
@@ -471,16 +472,18 @@ class Daemon:
         self.last_conditions = conditions
         if stop_now:
             self._send_stop()
-        elif self.safety.armed and result is not None:
-            self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
-        if not conditions and dev.connected and not self._healthy_cycle.is_set():
-            self._healthy_cycle.set()  # once: Event.set takes a lock and notifies
+        # telemetry before the motion commands: their CAN frames wake the device threads,
+        # which then want the GIL; a stop above is never delayed by it
         hook = self.sample_hook
         if hook is not None and result is not None:
             t0 = time.perf_counter_ns()
             hook(result, tick.index, (tick.deadline_ns - self._t0_ns) * 1e-9,
                  self.safety.state.value)
             self.hook_ns[self.cycles % self.hook_ns.shape[0]] = time.perf_counter_ns() - t0
+        if not stop_now and self.safety.armed and result is not None:
+            self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
+        if not conditions and dev.connected and not self._healthy_cycle.is_set():
+            self._healthy_cycle.set()  # once: Event.set takes a lock and notifies
         if stop_now:
             self._update_status()
         if self._sensor_request is not None:

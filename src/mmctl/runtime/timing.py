@@ -8,6 +8,7 @@ overwritten while they copied, so no lock is ever taken on the hot path.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -71,6 +72,9 @@ class TimingRing:
         self._slack = np.zeros(size, np.int64)
         self._missed = np.zeros(size, np.int64)
         self._count = 0
+        #: the newest cycle's (latency, compute, slack, missed) [ns] as Python numbers,
+        #: for the telemetry row of the cycle after it (NaN before the first)
+        self.newest: tuple[float, ...] = (math.nan,) * 4
 
     @property
     def count(self) -> int:
@@ -86,6 +90,7 @@ class TimingRing:
         self._compute[i] = compute_ns
         self._slack[i] = slack_ns
         self._missed[i] = missed
+        self.newest = (latency_ns, compute_ns, slack_ns, missed)
         self._count += 1  # publish: readers only trust slots below this count
 
     def last(self) -> tuple[int, int, int, int, int] | None:

@@ -2,7 +2,9 @@
 
 The publisher slices the rows (:mod:`mmctl.telemetry.ring`) into one :class:`Columns`
 per rate: the full-rate series (every sample: the trial-metric inputs), the plot-rate
-series (every ``stride``-th cycle) and the loop timing.  The same row functions (:func:`force_norm`,
+series (every ``stride``-th cycle) and the loop timing.  What the loop leaves out of a
+row to keep its work small is derived here: positions in the mobile base frame
+(:func:`base_frame`) and the wheel speeds (:func:`wheel_speeds`).  The same row functions (:func:`force_norm`,
 :func:`ee_speed`) are used by the trial tracker, so metrics computed live and metrics
 recomputed from a recording see bit-identical inputs.
 """
@@ -71,9 +73,35 @@ def _index(rows: F64) -> tuple[I64, I64]:
     return rows[:, ring.CYCLE].astype(np.int64), time_ns(rows[:, ring.T])
 
 
+def base_frame(rows: F64, cols: slice) -> F64:
+    """World positions (columns ``cols`` of the rows) in the mobile base frame: the
+    offset from the base origin rotated by -yaw [m].
+
+    Row by row the same expressions (``math.cos``/``math.sin`` of each yaw, then
+    elementwise products and sums), so one row alone gives bit-identical results
+    to the same row among many: the trial tracker relies on that for x_f.
+    """
+    yaw = rows[:, ring.BASE_YAW].tolist()
+    c = np.array([math.cos(a) for a in yaw])
+    s = np.array([math.sin(a) for a in yaw])
+    dx = rows[:, cols.start] - rows[:, ring.BASE_X]
+    dy = rows[:, cols.start + 1] - rows[:, ring.BASE_Y]
+    out = np.empty((len(rows), 3))
+    out[:, 0] = c * dx + s * dy
+    out[:, 1] = -s * dx + c * dy
+    out[:, 2] = rows[:, cols.start + 2]
+    return out
+
+
+def wheel_speeds(rows: F64, wheels: F64) -> F64:
+    """Commanded wheel speeds (n, 4) [rad/s] from the rows' base twist command and the
+    (4, 3) wheel matrix (:func:`mmctl.control.mecanum.wheel_matrix`)."""
+    return rows[:, ring.BASE_TWIST] @ wheels.T
+
+
 def full_rate(rows: F64) -> Columns:
-    """The full-rate series of every row (E_K, ‖f_h‖, speeds, p, p_des) of an (n,
-    ring.WIDTH) array of sample rows (:mod:`mmctl.telemetry.ring`)."""
+    """The full-rate series of every row (E_K, ‖f_h‖, speeds, p, p_des in the base
+    frame) of an (n, ring.WIDTH) array of sample rows (:mod:`mmctl.telemetry.ring`)."""
     cycle, t_ns = _index(rows)
     speed = np.empty((len(rows), 2))
     speed[:, 0] = ee_speed(rows[:, ring.V_D])
@@ -82,13 +110,14 @@ def full_rate(rows: F64) -> Columns:
         layout.ENERGY.path: rows[:, ring.ENERGY].copy(),
         layout.FORCE_NORM.path: force_norm(rows[:, ring.F_H])[:, None],
         layout.SPEED.path: speed,
-        layout.EE_POSITION.path: rows[:, ring.P].copy(),
-        layout.EE_POSITION_DES.path: rows[:, ring.P_DES].copy(),
+        layout.EE_POSITION.path: base_frame(rows, ring.P),
+        layout.EE_POSITION_DES.path: base_frame(rows, ring.P_DES),
     })
 
 
-def plot_rate(rows: F64, stride: int) -> Columns:
-    """The plot-rate series of the rows whose cycle is a multiple of ``stride``."""
+def plot_rate(rows: F64, stride: int, wheels: F64) -> Columns:
+    """The plot-rate series of the rows whose cycle is a multiple of ``stride``;
+    wheels: the (4, 3) wheel matrix."""
     picked = rows[rows[:, ring.CYCLE].astype(np.int64) % stride == 0]
     cycle, t_ns = _index(picked)
     qd = picked[:, ring.QD_CMD]
@@ -96,7 +125,7 @@ def plot_rate(rows: F64, stride: int) -> Columns:
         layout.FORCE.path: picked[:, ring.F_H].copy(),
         layout.ARM_QD.path: qd[:, :6].copy(),
         layout.BASE_TWIST.path: qd[:, 6:].copy(),
-        layout.WHEELS.path: picked[:, ring.WHEELS].copy(),
+        layout.WHEELS.path: wheel_speeds(picked, wheels),
     })
 
 

@@ -278,7 +278,8 @@ def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destina
         sink = RerunSink(destinations, recording_name=recording_name, static=static,
                          mecanum=mecanum)
         pub = Publisher(sink, loop_rate_hz=loop_rate_hz, plot_rate_hz=plot_rate_hz,
-                        scene_rate_hz=scene_rate_hz, ring=ring, scene=scene, pace=False)
+                        scene_rate_hz=scene_rate_hz, ring=ring, scene=scene, pace=False,
+                        mecanum=mecanum)
         pub.start()
         conn.send(("ready",))
         while True:

@@ -28,6 +28,8 @@ from typing import Any, Protocol
 import numpy as np
 import structlog
 
+from mmctl.config.base import MecanumConfig
+from mmctl.control.mecanum import wheel_matrix
 from mmctl.telemetry import layout
 from mmctl.telemetry import ring as tr
 from mmctl.telemetry.batch import Columns, full_rate, loop_timing, plot_rate, plot_stride
@@ -75,7 +77,8 @@ class Publisher:
     def __init__(self, sink: Sink, *, loop_rate_hz: float = 500.0, plot_rate_hz: float = 100.0,
                  scene_rate_hz: float = 15.0, queue_size: int = 4096,
                  ring: SampleRing | None = None, timing: Any = None,
-                 scene: Scene | None = None, spin_margin_s: float = 0.0001, pace: bool = True):
+                 scene: Scene | None = None, spin_margin_s: float = 0.0001, pace: bool = True,
+                 mecanum: MecanumConfig | None = None):
         if scene_rate_hz <= 0 or plot_rate_hz <= 0 or loop_rate_hz <= 0:
             raise ValueError("rates must be > 0")
         self.sink = sink
@@ -83,6 +86,7 @@ class Publisher:
         self.events: DropQueue[Event] = DropQueue(EVENT_QUEUE_SIZE)
         self.put = self.ring.put  #: the loop's hot path: put(sample) -> bool, never blocks
         self.stride = plot_stride(loop_rate_hz, plot_rate_hz)
+        self.wheels = wheel_matrix(mecanum if mecanum is not None else MecanumConfig())
         self.wake_period = 1.0 / scene_rate_hz
         self.period_ns = round(1e9 / loop_rate_hz)
         self.scene = scene
@@ -206,7 +210,7 @@ class Publisher:
         if n:
             columns.append(full_rate(rows))
             pace()
-            columns.append(plot_rate(rows, self.stride))
+            columns.append(plot_rate(rows, self.stride, self.wheels))
             pace()
             timing = loop_timing(rows, self.period_ns)
             if len(timing):

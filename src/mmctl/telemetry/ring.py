@@ -7,18 +7,19 @@ drop counter and the published counter.  The buffer is either a private numpy ar
 maps too (``telemetry.process``): then the publisher's work, rerun's included, never
 takes the daemon's interpreter lock.
 
-Producer (the loop thread), :meth:`SampleRing.put`: if ``head - tail`` reaches the
-capacity the sample is dropped and counted; otherwise it fills row ``head % size``
-and only then stores ``head + 1``.  Consumer (the publisher), :meth:`SampleRing.take`:
+Producer (the loop thread), :meth:`SampleRing.claim` / :meth:`~SampleRing.commit` (or
+:meth:`~SampleRing.put` for a :class:`~mmctl.telemetry.sample.TelemetrySample`): if
+``head - tail`` reaches the capacity the sample is dropped and counted; otherwise it
+fills row ``head % size`` and only then stores ``head + 1``.  Consumer (the publisher), :meth:`SampleRing.take`:
 copies rows ``tail .. head - 1`` and only then stores the new tail.  Each counter has
 one writer, so no lock is taken and the loop never waits.  Across processes this relies
 on stores becoming visible in program order (x86-64's memory model; CPython does not
 reorder them).
 
-Besides the sample, a row carries the loop timing of the *previous* cycle (read from
-the loop's :class:`~mmctl.runtime.timing.TimingRing` when the row is written: the
-current cycle is not finished yet), so a publisher in another process still plots loop
-slack and compute time.
+Besides the sample, a row carries the loop timing of the *previous* cycle (the loop's
+:attr:`TimingRing.newest <mmctl.runtime.timing.TimingRing.newest>` when the row is
+written: the current cycle is not finished yet), so a publisher in another process
+still plots loop slack and compute time.
 """
 
 from __future__ import annotations
@@ -38,21 +39,25 @@ from mmctl.telemetry.sample import TelemetrySample
 F64 = NDArray[np.float64]
 
 # -- row layout ----------------------------------------------------------------------------
+# What the loop has at hand, copied as is: positions stay in the world (odometry) frame
+# and the wheel speeds are not computed -- the consumer derives both
+# (:func:`mmctl.telemetry.batch.base_frame`, :func:`~mmctl.telemetry.batch.wheel_speeds`).
 CYCLE, T, MODE, SAFETY = 0, 1, 2, 3
 #: timing of the previous cycle [ns]: latency, compute, slack, missed (NaN: unknown)
 PREV_LATENCY, PREV_COMPUTE, PREV_SLACK, PREV_MISSED = 4, 5, 6, 7
 Q_A = slice(8, 14)
 BASE_POSE = slice(14, 17)
+BASE_X, BASE_Y, BASE_YAW = 14, 15, 16
 F_H = slice(17, 23)
 V_D = slice(23, 29)
 V = slice(29, 35)
 QD_CMD = slice(35, 44)
-WHEELS = slice(44, 48)
-E_TOTAL, E_ARM, E_BASE = 48, 49, 50
-ENERGY = slice(48, 51)
-P = slice(51, 54)
-P_DES = slice(54, 57)
-WIDTH = 57
+BASE_TWIST = slice(41, 44)  #: the base part of QD_CMD: vx, vy [m/s], wz [rad/s]
+E_TOTAL, E_ARM, E_BASE = 44, 45, 46
+ENERGY = slice(44, 47)
+P = slice(47, 50)  #: tool position in the world [m]
+P_DES = slice(50, 53)  #: FK(q_des) in the world, base at its pose [m]
+WIDTH = 53
 
 #: mode labels a row can carry (``TelemetrySample.mode``), by code
 MODES: tuple[str, ...] = tuple(
@@ -68,7 +73,7 @@ UNKNOWN = "?"
 # -- header (int64) --------------------------------------------------------------------------
 _HEAD, _TAIL, _DROPPED, _PUBLISHED = 0, 1, 2, 3
 _HEADER = 8  #: int64 slots (4 spare)
-_NAN4 = (math.nan,) * 4
+_NAN4: tuple[float, ...] = (math.nan,) * 4
 
 
 def mode_code(label: str) -> float:
@@ -92,7 +97,7 @@ class SampleRing:
 
     size: capacity in rows (> 0); buffer: where the header and rows live (None: a
     private array; see :meth:`create_file` / :meth:`attach_file`); timing: the loop's
-    TimingRing, read by :meth:`put` for the previous cycle's timing (None: NaN).
+    TimingRing, whose newest row is the previous cycle's timing (None: NaN).
     """
 
     def __init__(self, size: int, buffer: Any = None, timing: Any = None):
@@ -106,10 +111,14 @@ class SampleRing:
             raise ValueError(f"buffer holds {len(buffer)} bytes, {nbytes} needed for {size} rows")
         self._buffer = buffer
         self._hdr = np.frombuffer(buffer, np.int64, _HEADER)
+        #: the header again as a memoryview of int64: the producer's reads and stores
+        #: of single counters give and take Python ints (no numpy scalar per access)
+        self._hv = memoryview(buffer)[:_HEADER * 8].cast("q")
         self.rows = np.frombuffer(buffer, np.float64, size * WIDTH,
                                   _HEADER * 8).reshape(size, WIDTH)
+        self._views = list(self.rows)  #: one view per row, made once (claim returns them)
+        self._head = self._hv[_HEAD]  #: the producer's own copy of the head
         self.timing = timing
-        self._claimed = 0
         self._file: Path | None = None
 
     @staticmethod
@@ -160,31 +169,33 @@ class SampleRing:
 
     # -- producer --------------------------------------------------------------------------
     def claim(self) -> F64 | None:
-        """The next free row, its timing columns filled (the loop's hot path), or None
-        when the ring is full (the sample is dropped and counted).  Fill the rest, then
-        :meth:`commit`.  Never blocks."""
-        hdr = self._hdr
-        head = int(hdr[_HEAD])
-        if head - int(hdr[_TAIL]) >= self.size:
-            hdr[_DROPPED] += 1
+        """The next free row (the loop's hot path), or None when the ring is full (the
+        sample is dropped and counted).  Fill it (:func:`encode`, or the loop's
+        ``ControlCore.fill_row``), then :meth:`commit`.  Never blocks."""
+        hv = self._hv
+        head = self._head
+        if head - hv[_TAIL] >= self.size:
+            hv[_DROPPED] += 1
             return None
-        row = self.rows[head % self.size]
-        timing = self.timing
-        prev = timing.last() if timing is not None else None  # (deadline, latency, ...)
-        row[PREV_LATENCY:PREV_MISSED + 1] = prev[1:] if prev is not None else _NAN4
-        self._claimed = head
-        return row
+        return self._views[head % self.size]
 
     def commit(self) -> None:
         """Publish the row :meth:`claim` returned."""
-        self._hdr[_HEAD] = self._claimed + 1
+        self._head += 1
+        self._hv[_HEAD] = self._head
+
+    def prev_timing(self) -> tuple[float, ...]:
+        """The loop's newest timing (latency, compute, slack, missed) [ns] for the row
+        being written: the previous cycle's (NaN without a timing ring)."""
+        timing = self.timing
+        return timing.newest if timing is not None else _NAN4
 
     def put(self, s: TelemetrySample) -> bool:
         """Append one sample; False if the ring was full (dropped, counted)."""
         row = self.claim()
         if row is None:
             return False
-        encode(s, row)
+        encode(s, row, self.prev_timing())
         self.commit()
         return True
 
@@ -224,12 +235,13 @@ class SampleRing:
         return int(self._hdr[_HEAD]) - int(self._hdr[_TAIL])
 
 
-def encode(s: TelemetrySample, row: F64) -> None:
-    """Write a sample into a row (all but the timing columns)."""
-    row[:PREV_LATENCY] = (s.cycle, s.t, _MODE_CODE.get(s.mode, -1.0),
-                          _SAFETY_CODE.get(s.safety, -1.0))
-    np.concatenate((s.q_a, s.base_pose, s.f_h, s.v_d, s.v, s.qd_cmd, s.wheels_cmd,
-                    (s.e_total, s.e_arm, s.e_base), s.p, s.p_des), out=row[Q_A.start:])
+def encode(s: TelemetrySample, row: F64, prev: tuple[float, ...] = _NAN4) -> None:
+    """Write a sample and the previous cycle's timing ``prev`` (latency, compute, slack,
+    missed [ns]) into a row."""
+    np.concatenate(((s.cycle, s.t, _MODE_CODE.get(s.mode, -1.0),
+                     _SAFETY_CODE.get(s.safety, -1.0), *prev),
+                    s.q_a, s.base_pose, s.f_h, s.v_d, s.v, s.qd_cmd,
+                    (s.e_total, s.e_arm, s.e_base), s.p, s.p_des), out=row)
 
 
 def sample_of(row: F64) -> TelemetrySample:
@@ -237,7 +249,7 @@ def sample_of(row: F64) -> TelemetrySample:
     return TelemetrySample(
         cycle=int(row[CYCLE]), t=float(row[T]), q_a=row[Q_A].copy(),
         base_pose=row[BASE_POSE].copy(), f_h=row[F_H].copy(), v_d=row[V_D].copy(),
-        v=row[V].copy(), qd_cmd=row[QD_CMD].copy(), wheels_cmd=row[WHEELS].copy(),
+        v=row[V].copy(), qd_cmd=row[QD_CMD].copy(),
         e_total=float(row[E_TOTAL]), e_arm=float(row[E_ARM]), e_base=float(row[E_BASE]),
         p=row[P].copy(), p_des=row[P_DES].copy(), mode=label(MODES, float(row[MODE])),
         safety=label(SAFETY_STATES, float(row[SAFETY])))

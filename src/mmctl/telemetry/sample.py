@@ -27,11 +27,12 @@ class TelemetrySample(NamedTuple):
     f_h: (6,) human wrench in the control frame [N, N m];
     v_d: (6,) desired end-effector twist, the admittance output [m/s, rad/s];
     v: (6,) actual end-effector twist ``J(q) q̇`` [m/s, rad/s];
-    qd_cmd: (9,) commanded velocities: arm (6) [rad/s], base vx, vy [m/s], wz [rad/s];
-    wheels_cmd: (4,) commanded wheel speeds FL, FR, BL, BR [rad/s];
+    qd_cmd: (9,) commanded velocities: arm (6) [rad/s], base vx, vy [m/s], wz [rad/s]
+    (the wheel speeds follow from the base part and the wheel geometry);
     e_total, e_arm, e_base: kinetic energy E_K and its arm / base parts [J];
-    p: (3,) end-effector position ``FK(q)`` in the mobile base frame [m];
-    p_des: (3,) preferred position ``FK(q_des)`` in the same frame [m];
+    p: (3,) end-effector position ``FK(q)`` in the world (odometry) frame [m];
+    p_des: (3,) preferred position ``FK(q_des)``, base at its pose, in the same frame [m]
+    (the publisher plots both in the mobile base frame);
     mode: the active IDK strategy / switch sub-mode (its name);
     safety: the safety state (its name).
     """
@@ -44,7 +45,6 @@ class TelemetrySample(NamedTuple):
     v_d: Vec
     v: Vec
     qd_cmd: Vec
-    wheels_cmd: Vec
     e_total: float
     e_arm: float
     e_base: float
@@ -57,5 +57,5 @@ class TelemetrySample(NamedTuple):
 def zero_sample(cycle: int = 0, t: float = 0.0) -> TelemetrySample:
     """A sample with every quantity zero (robot at rest, arm at zero joints)."""
     z3, z6 = np.zeros(3), np.zeros(6)
-    return TelemetrySample(cycle, t, z6, z3, z6, z6, z6, np.zeros(9), np.zeros(4),
+    return TelemetrySample(cycle, t, z6, z3, z6, z6, z6, np.zeros(9),
                            0.0, 0.0, 0.0, z3, z3, "idle", "disarmed")

@@ -39,7 +39,7 @@ class SceneFrame(NamedTuple):
     in the base frame [m]; handle_translation: (3,) [m] and handle_quaternion (4,)
     (x, y, z, w): the handle frame in the base frame; twist_vector, force_vector: (3,)
     arrows at the handle [m] (scaled by :data:`layout.TWIST_ARROW_SCALE`,
-    :data:`layout.FORCE_ARROW_SCALE`); p_des: (3,) preferred position [m].
+    :data:`layout.FORCE_ARROW_SCALE`); p_des: (3,) preferred position in the base frame [m].
     """
 
     base_translation: F64
@@ -86,6 +86,8 @@ class SceneBuilder:
         pts += [flange.translation, tool.translation]
         quat = pin.Quaternion(tool.rotation)
         x, y, yaw = (float(v) for v in s.base_pose[:3])
+        c, sn = math.cos(yaw), math.sin(yaw)
+        dx, dy = float(s.p_des[0]) - x, float(s.p_des[1]) - y  # world -> base frame
         f_h = np.asarray(s.f_h, dtype=float)
         v_d = np.asarray(s.v_d, dtype=float)
         return SceneFrame(
@@ -96,5 +98,5 @@ class SceneBuilder:
             handle_quaternion=np.array([quat.x, quat.y, quat.z, quat.w]),
             twist_vector=v_d[:3] * layout.TWIST_ARROW_SCALE,
             force_vector=f_h[:3] * layout.FORCE_ARROW_SCALE,
-            p_des=np.asarray(s.p_des, dtype=float).copy(),
+            p_des=np.array([c * dx + sn * dy, -sn * dx + c * dy, float(s.p_des[2])]),
         )

@@ -12,6 +12,7 @@ except while a trial is bracketed, when it fills a scratch row for the tracker.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -98,7 +99,8 @@ class TelemetryService:
                                        plot_rate_hz=t.plot_rate, scene_rate_hz=t.scene_rate,
                                        queue_size=t.queue_size, timing=ring,
                                        scene=SceneBuilder(cfg.robot),
-                                       spin_margin_s=cfg.loop.spin_margin)
+                                       spin_margin_s=cfg.loop.spin_margin,
+                                       mecanum=cfg.base.mecanum)
         self.publisher.start()
         log.info("telemetry_started", viewer=self.destinations.viewer,
                  connect=self.destinations.connect, record=self.destinations.record)
@@ -114,24 +116,26 @@ class TelemetryService:
         pub, tracker = self.publisher, self.tracker
         fill, observe = core.fill_row, tracker.observe_row
         scratch = np.full(ring.WIDTH, np.nan)
+        no_timing = (math.nan,) * 4
         if pub is None:
             if not tracker.active:
                 return None
 
             def trial_only(r: Any, cycle: int, t: float, safety: str) -> None:
-                fill(r, cycle, t, safety, scratch)
+                fill(r, cycle, t, safety, no_timing, scratch)
                 observe(scratch)
 
             return trial_only
         claim, commit = pub.ring.claim, pub.ring.commit
+        timing = pub.ring.timing if pub.ring.timing is not None else _NoTiming()
 
         def both(r: Any, cycle: int, t: float, safety: str) -> None:
             row = claim()
             if row is None:  # full: dropped and counted by the ring
-                fill(r, cycle, t, safety, scratch)
+                fill(r, cycle, t, safety, timing.newest, scratch)
                 observe(scratch)
                 return
-            fill(r, cycle, t, safety, row)
+            fill(r, cycle, t, safety, timing.newest, row)
             observe(row)
             commit()
 
@@ -184,3 +188,9 @@ class TelemetryService:
         pub = self.publisher
         if pub is not None:
             pub.post_event(event)
+
+
+class _NoTiming:
+    """Stands in for a TimingRing when the publisher has none: timing unknown (NaN)."""
+
+    newest: tuple[float, ...] = (math.nan,) * 4

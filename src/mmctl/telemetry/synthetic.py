@@ -20,7 +20,8 @@ Q0 = np.array([0.0, -1.9, 1.9, -1.5708, -1.5708, 0.0])
 
 def synthetic_sample(k: int, period: float = 0.002, p_des: tuple[float, float, float] = (
         0.9, 0.0, 1.0)) -> TelemetrySample:
-    """The sample of cycle ``k`` (see the module docstring); ``period`` T [s]."""
+    """The sample of cycle ``k`` (see the module docstring); ``period`` T [s]; p_des: the
+    preferred position in the mobile base frame [m] (the sample holds it in the world)."""
     t = k * period
     push = math.sin(0.5 * t) ** 2
     f = np.array([30.0 * push, 5.0 * math.sin(1.3 * t), -2.0, 0.0, 0.0, 0.0])
@@ -29,14 +30,17 @@ def synthetic_sample(k: int, period: float = 0.002, p_des: tuple[float, float, f
     q_a = Q0 + 0.15 * np.sin(0.7 * t + np.arange(6))
     qd_arm = 0.1 * np.cos(0.7 * t + np.arange(6))
     twist = np.array([0.15 * push, 0.0, 0.05 * math.sin(0.2 * t)])
-    wheels = np.array([1.0, 1.1, 0.9, 1.05]) * twist[0] / 0.127
     e_arm = 0.5 * float(qd_arm @ qd_arm)
     e_base = 0.5 * 115.0 * float(twist[:2] @ twist[:2]) + 0.5 * 15.0 * twist[2] ** 2
-    p = np.array(p_des) + np.array([0.05 * math.sin(0.3 * t), 0.02, -0.01])
+    x, y, yaw = 0.1 * t, 0.02 * t, 0.05 * t
+    c, s = math.cos(yaw), math.sin(yaw)
+    p_des_w = np.array([x + c * p_des[0] - s * p_des[1], y + s * p_des[0] + c * p_des[1],
+                        p_des[2]])
+    p = p_des_w + np.array([0.05 * math.sin(0.3 * t), 0.02, -0.01])
     return TelemetrySample(
-        cycle=k, t=t, q_a=q_a, base_pose=np.array([0.1 * t, 0.02 * t, 0.05 * t]), f_h=f,
-        v_d=v_d, v=v, qd_cmd=np.concatenate((qd_arm, twist)), wheels_cmd=wheels,
-        e_total=e_arm + e_base, e_arm=e_arm, e_base=e_base, p=p, p_des=np.array(p_des),
+        cycle=k, t=t, q_a=q_a, base_pose=np.array([x, y, yaw]), f_h=f,
+        v_d=v_d, v=v, qd_cmd=np.concatenate((qd_arm, twist)),
+        e_total=e_arm + e_base, e_arm=e_arm, e_base=e_base, p=p, p_des=p_des_w,
         mode="min-energy", safety="armed",
     )
 

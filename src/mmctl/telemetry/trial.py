@@ -21,7 +21,7 @@ import structlog
 from mmctl.control.metrics import TrialMetrics, trial_metrics
 from mmctl.errors import MmctlError
 from mmctl.telemetry import layout, ring
-from mmctl.telemetry.batch import norm3
+from mmctl.telemetry.batch import base_frame, norm3
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.sample import TelemetrySample
 
@@ -66,9 +66,9 @@ def compute(period: float, e_k: Any, f_norm: Any, v_norm: Any, p_final: Any,
 
 
 class TrialRows:
-    """What a trial collected: per-cycle lists and the last positions (loop thread)."""
+    """What a trial collected: per-cycle lists and the last row (loop thread)."""
 
-    __slots__ = ("e", "f", "p", "p_des", "start_cycle", "stop_cycle", "stop_t", "trial", "v")
+    __slots__ = ("e", "f", "last", "start_cycle", "stop_cycle", "stop_t", "trial", "v")
 
     def __init__(self, trial: int):
         self.trial = trial
@@ -78,8 +78,7 @@ class TrialRows:
         self.e: list[float] = []
         self.f: list[float] = []
         self.v: list[float] = []
-        self.p: Any = None
-        self.p_des: Any = None
+        self.last: Any = None  #: the newest row (its positions give x_f)
 
 
 class TrialTracker:
@@ -132,8 +131,7 @@ class TrialTracker:
         rows.e.append(float(row[ring.E_TOTAL]))
         rows.f.append(norm3(row[ring.F_H]))
         rows.v.append(norm3(row[ring.V]))
-        rows.p = row[ring.P].copy()
-        rows.p_des = row[ring.P_DES].copy()
+        rows.last = row.copy()
         rows.stop_cycle = cycle
         rows.stop_t = t
 
@@ -151,8 +149,10 @@ class TrialTracker:
         if not rows.e:
             raise TrialError(f"trial {rows.trial} saw no control cycle (is the loop running "
                              "and the robot connected?)")
+        # the base frame, as the recording's positions (the same function: same bits)
+        last = rows.last[None]
         m = compute(self.period, np.array(rows.e), np.array(rows.f), np.array(rows.v),
-                    rows.p, rows.p_des)
+                    base_frame(last, ring.P)[0], base_frame(last, ring.P_DES)[0])
         result = TrialResult(rows.trial, rows.start_cycle, rows.stop_cycle, len(rows.e), m)
         self.results.append(result)
         d = result.as_dict()
