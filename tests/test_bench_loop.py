@@ -30,7 +30,7 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
     path = tmp_path / "bench.yaml"
     path.write_text(yaml.safe_dump(cfg))
     rc = main(["bench", "loop", "--seconds", "1", "--json", "--telemetry", "--config", str(path),
-               "--host", loopback_host, "--cpu-dma-latency", "1500"])
+               "--host", loopback_host, "--cpu-dma-latency", "1500", "--telemetry-windows", "4"])
     assert rc == 0
     rep = json.loads(capsys.readouterr().out)
     # the daemon held the PM QoS request for the run (where this machine allows it) and
@@ -46,7 +46,7 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
         assert 0.0 < fig["compute_p50_us"] <= fig["compute_p99_us"] <= fig["compute_max_us"]
         assert fig["latency_p50_us"] <= fig["latency_p99_us"] <= fig["latency_p999_us"]
     tel = rep["telemetry"]
-    assert tel["phases"] == 20 and tel["off"]["cycles"] > 0 and tel["on"]["cycles"] > 0
+    assert tel["phases"] == 8 and tel["off"]["cycles"] > 0 and tel["on"]["cycles"] > 0
     assert tel["published"] > 0  # the "on" windows' samples reached the recording
     assert tel["publisher"] == ("process" if process else "thread")
     assert 0.0 < tel["hook_p50_us"] <= tel["hook_p99_us"]  # the hook ran in the "on" windows

@@ -44,8 +44,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "loop.cpu_dma_latency); needs write access to /dev/cpu_dma_latency")
     p.add_argument("--telemetry", action="store_true",
                    help="also time the daemon's loop with telemetry off vs on (a publisher "
-                        "recording to a temporary .rrd) in --windows pairs of alternating windows of the same "
-                        "run, --seconds in all; JSON key 'telemetry'")
+                        "recording to a temporary .rrd) in --telemetry-windows pairs of "
+                        "alternating windows of the same run, --seconds in all; JSON key "
+                        "'telemetry'")
+    p.add_argument("--telemetry-windows", type=int, metavar="N",
+                   help="off/on window pairs for --telemetry (default: one pair per second "
+                        "of --seconds, at least 10): short windows spread the machine's "
+                        "bursts over both conditions")
     p.add_argument("--telemetry-aa", action="store_true",
                    help="--telemetry as an A/A check: the 'on' windows install no hook "
                         "either (the growth it prints is the comparison's own noise)")
@@ -79,6 +84,10 @@ def run(args: argparse.Namespace) -> int:
     args.telemetry = args.telemetry or args.telemetry_aa
     if args.windows < 1:
         raise MmctlError(f"--windows {args.windows}: must be >= 1")
+    if args.telemetry_windows is None:
+        args.telemetry_windows = max(10, round(args.seconds))
+    if args.telemetry_windows < 1:
+        raise MmctlError(f"--telemetry-windows {args.telemetry_windows}: must be >= 1")
     if args.cpu_dma_latency is not None and not -1 <= args.cpu_dma_latency <= MAX_US:
         raise MmctlError(f"--cpu-dma-latency {args.cpu_dma_latency}: must be -1 (no request) "
                          f"or 0..{MAX_US} us")
@@ -159,7 +168,8 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         if args.telemetry:
             from mmctl.telemetry.overhead import windows_on_daemon
 
-            result["telemetry"] = windows_on_daemon(daemon, args.seconds, phases=2 * args.windows,
+            result["telemetry"] = windows_on_daemon(daemon, args.seconds,
+                                                    phases=2 * args.telemetry_windows,
                                                     aa=args.telemetry_aa)
             result["telemetry"]["armed_at_end"] = daemon.safety.armed
     finally:
@@ -217,7 +227,9 @@ def _print_table(r: dict[str, Any]) -> None:
     if "telemetry" in r:
         from mmctl.telemetry.overhead import format_report
 
-        print(f"\ntelemetry off vs on (daemon loop, alternating {r['seconds'] / 10:g} s windows):")
+        t = r["telemetry"]
+        print(f"\ntelemetry off vs on (daemon loop, {t['phases']} alternating "
+              f"{r['seconds'] / t['phases']:g} s windows):")
         print(format_report(r["telemetry"]))
     print(verdict(r))
 

@@ -188,7 +188,8 @@ def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = No
 
 
 def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
-                      record_dir: Path | None = None, aa: bool = False) -> dict[str, Any]:
+                      record_dir: Path | None = None, aa: bool = False,
+                      settle: float | None = None) -> dict[str, Any]:
     """Alternate telemetry off/on windows of ``seconds / phases`` on a running daemon.
 
     daemon: started (loop running) and armed, with ``cfg``, ``ring``, ``sample_hook`` and
@@ -198,7 +199,9 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
     it (the publisher idles).  Many short windows average out the machine's drift.
     Returns the same dict as :func:`compare`.  The daemon's ring must hold at least one
     window of cycles.  aa: an A/A check -- the "on" windows install no hook either, so
-    the figures measure the noise of the comparison itself.
+    the figures measure the noise of the comparison itself.  settle: time not counted
+    after each switch [s] (default: two publisher wake-ups, at least 0.15 s: the last
+    batch of an "on" window is sent in the "off" window after it).
     """
     import time
 
@@ -209,7 +212,8 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
     if record_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="mmctl-telemetry-bench-")
         record_dir = Path(tmp.name)
-    settle = min(0.2, window / 10)
+    if settle is None:
+        settle = max(0.15, 2.0 / cfg.telemetry.scene_rate)
     saved = daemon.sample_hook
     done: list[Phase] = []
     service = TelemetryService(cfg, Destinations(record=str(record_dir / "bench.rrd")))
