@@ -70,3 +70,13 @@ def test_verdict_names_each_target_met_or_not_and_against_sleep() -> None:
         "target wake latency p99 < 100 us: 14 us, met; better than the time.sleep wait (76 us)",
         "target miss rate < 0.5 %: 0.1 %, met; not better than the time.sleep wait (0.09 %)",
     ]
+
+
+@pytest.mark.parametrize("text", ["one", "1;2", "-1"])
+def test_a_bad_cpu_list_is_refused_naming_the_value(text: str,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "loop", f"--cpu-affinity={text}"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--cpu-affinity" in err and repr(text) in err

@@ -27,14 +27,18 @@ WAIT = 60.0
 def test_the_child_writes_the_recording_from_the_shared_ring(tmp_path: Path) -> None:
     path = tmp_path / "child.rrd"
     timing = TimingRing(N + 1)
+    mine = os.sched_getaffinity(0)
+    loop_cpu = max(mine)  # as if the loop were pinned there (loop.cpu_affinity)
     pub = ProcessPublisher(Destinations(record=str(path)), recording_name="test",
                            static={"period_s": 0.002, "loop_rate_hz": 500.0},
-                           robot=default_config().robot, scene_rate_hz=50.0, timing=timing)
+                           robot=default_config().robot, scene_rate_hz=50.0, timing=timing,
+                           avoid_cpus=(loop_cpu,))
     pub.start()
     child = pub.pid
     assert child is not None and child != os.getpid()
-    # background work: it only gets a CPU nothing else wants
+    # background work: it only gets a CPU nothing else wants, and not the loop's
     assert os.sched_getscheduler(child) == os.SCHED_IDLE
+    assert os.sched_getaffinity(child) == (mine - {loop_cpu} or mine)
     assert pub.ring is not None and pub.ring.path is None  # unlinked once mapped by both
     tracker = TrialTracker(0.002, pub.post_event)  # its events cross to the child
     rows = None

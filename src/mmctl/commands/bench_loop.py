@@ -38,6 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="loopback address of the bench's fake UR (default 127.0.0.3)")
     p.add_argument("--rt-priority", type=int, metavar="N",
                    help="SCHED_FIFO priority of both loops (default: loop.rt_priority)")
+    p.add_argument("--cpu-affinity", type=_cpus, metavar="CPUS",
+                   help="CPUs to pin the loop to, e.g. 1 or 2,3; '' = any (default: "
+                        "loop.cpu_affinity); the telemetry child stays off them")
     p.add_argument("--cpu-dma-latency", type=int, metavar="US",
                    help="PM QoS CPU wake-up latency held during the run [us]: 0 = idle CPUs "
                    "poll instead of halting, -1 = no request (default: "
@@ -54,6 +57,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--telemetry-aa", action="store_true",
                    help="--telemetry as an A/A check: the 'on' windows install no hook "
                         "either (the growth it prints is the comparison's own noise)")
+
+
+def _cpus(text: str) -> tuple[int, ...]:
+    """``--cpu-affinity``: a comma-separated list of CPU numbers ('' = none)."""
+    try:
+        cpus = tuple(int(c) for c in text.split(",") if c.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected CPU numbers separated by commas, e.g. 1 or 2,3") from None
+    if any(c < 0 for c in cpus):
+        raise argparse.ArgumentTypeError(f"{text!r}: CPU numbers are >= 0")
+    return cpus
 
 
 def _figures(snap: Any, step_us: Any) -> dict[str, float | int]:
@@ -100,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
                                  max_total_misses=10**9,
                                  rt_priority=(cfg.loop.rt_priority if args.rt_priority is None
                                               else args.rt_priority),
+                                 cpu_affinity=(cfg.loop.cpu_affinity if args.cpu_affinity is None
+                                               else args.cpu_affinity),
                                  cpu_dma_latency=(cfg.loop.cpu_dma_latency
                                                   if args.cpu_dma_latency is None
                                                   else args.cpu_dma_latency)),
@@ -140,6 +157,7 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
     result: dict[str, Any] = {"seconds": args.seconds, "windows": args.windows,
                               "rate_hz": cfg.loop.rate_hz,
                               "rt_priority": cfg.loop.rt_priority,
+                              "cpu_affinity": list(cfg.loop.cpu_affinity),
                               "spin_margin_us": cfg.loop.spin_margin * 1e6,
                               "cpus": os.cpu_count(), "loadavg_1min": os.getloadavg()[0]}
     try:
@@ -214,7 +232,8 @@ def _print_table(r: dict[str, Any]) -> None:
     qos = "off" if r.get("cpu_dma_latency_us") is None else f"{r['cpu_dma_latency_us']} us"
     print(f"mmctl bench loop: {r['seconds']:g} s per wait in {r['windows']} alternating "
           f"windows each, at {r['rate_hz']:g} Hz on the simulated robot ({r['cpus']} CPUs, "
-          f"load {r['loadavg_1min']:.2f}, SCHED_FIFO {r['rt_priority'] or 'off'}, spin "
+          f"load {r['loadavg_1min']:.2f}, SCHED_FIFO {r['rt_priority'] or 'off'}, loop on CPUs "
+          f"{','.join(map(str, r['cpu_affinity'])) or 'any'}, spin "
           f"{r['spin_margin_us']:g} us, CPU latency request {qos})")
     print(f"{'':22}{'compute p50/p99/max [us]':>28}{'step p50/p99':>16}"
           f"{'latency p50/p99/p99.9 [us]':>30}{'miss rate':>11}")

@@ -52,9 +52,10 @@ class ProcessPublisher:
     :class:`~mmctl.telemetry.rerun_sink.RerunSink`; robot: the model for the 3-D view
     (None: no 3-D view); rates and queue_size: as for
     :class:`~mmctl.telemetry.publisher.Publisher`; timing: the loop's TimingRing (the
-    rows' previous-cycle timing); start_timeout / close_timeout [s]: how long
-    :meth:`start` waits for the child to open the destinations and :meth:`close` for
-    its last flush.
+    rows' previous-cycle timing); avoid_cpus: CPUs the child stays off (the loop's
+    ``loop.cpu_affinity``) while another is allowed; start_timeout / close_timeout
+    [s]: how long :meth:`start` waits for the child to open the destinations and
+    :meth:`close` for its last flush.
     """
 
     busy = None  #: no work intervals in this process (the bench's overlap count is n/a)
@@ -64,13 +65,14 @@ class ProcessPublisher:
                  mecanum: MecanumConfig | None = None, robot: RobotConfig | None = None,
                  loop_rate_hz: float = 500.0, plot_rate_hz: float = 100.0,
                  scene_rate_hz: float = 15.0, queue_size: int = 4096, timing: Any = None,
-                 start_timeout: float = 60.0, close_timeout: float = 30.0):
+                 avoid_cpus: tuple[int, ...] = (), start_timeout: float = 60.0,
+                 close_timeout: float = 30.0):
         self.destinations = destinations
         self._child_args: dict[str, Any] = {
             "destinations": destinations, "recording_name": recording_name,
             "static": dict(static or {}), "mecanum": mecanum, "robot": robot,
             "loop_rate_hz": loop_rate_hz, "plot_rate_hz": plot_rate_hz,
-            "scene_rate_hz": scene_rate_hz}
+            "scene_rate_hz": scene_rate_hz, "avoid_cpus": tuple(avoid_cpus)}
         self.queue_size = queue_size
         self.timing = timing
         self.start_timeout = start_timeout
@@ -243,10 +245,16 @@ class ProcessPublisher:
         log.error("telemetry_process_failed", error=repr(self.error))
 
 
-def _background() -> None:
-    """Make this process background work: SCHED_IDLE (it runs only on a CPU nothing
-    else wants, and any waking thread of the daemon -- one that may hold the daemon's
-    interpreter lock the loop needs -- preempts it at once), else ``nice +10``."""
+def _background(avoid_cpus: tuple[int, ...] = ()) -> None:
+    """Make this process background work: off the CPUs in ``avoid_cpus`` (the loop's,
+    when it is pinned: its caches stay its own) as long as another CPU is allowed, and
+    SCHED_IDLE (it runs only on a CPU nothing else wants, and any waking thread of the
+    daemon -- one that may hold the daemon's interpreter lock the loop needs -- preempts
+    it at once), else ``nice +10``."""
+    if avoid_cpus and hasattr(os, "sched_setaffinity"):
+        others = os.sched_getaffinity(0) - set(avoid_cpus)
+        if others:
+            os.sched_setaffinity(0, others)
     if hasattr(os, "SCHED_IDLE"):
         try:
             os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
@@ -259,11 +267,11 @@ def _background() -> None:
 def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destinations,
            recording_name: str, static: dict[str, float | int | str],
            mecanum: MecanumConfig | None, robot: RobotConfig | None, loop_rate_hz: float,
-           plot_rate_hz: float, scene_rate_hz: float) -> None:
+           plot_rate_hz: float, scene_rate_hz: float, avoid_cpus: tuple[int, ...] = ()) -> None:
     """The child: map the ring, open the sink, run the publisher until told to close."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    _background()
+    _background(avoid_cpus)
     from mmctl.telemetry.publisher import Publisher
     from mmctl.telemetry.rerun_sink import RerunSink
 

@@ -91,7 +91,7 @@ class TelemetryService:
                 self.destinations, recording_name=cfg.name, static=static,
                 mecanum=cfg.base.mecanum, robot=cfg.robot, loop_rate_hz=cfg.loop.rate_hz,
                 plot_rate_hz=t.plot_rate, scene_rate_hz=t.scene_rate,
-                queue_size=t.queue_size, timing=ring)
+                queue_size=t.queue_size, timing=ring, avoid_cpus=tuple(cfg.loop.cpu_affinity))
         else:
             sink = RerunSink(self.destinations, recording_name=cfg.name, static=static,
                              mecanum=cfg.base.mecanum)
