@@ -48,6 +48,7 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
     tel = rep["telemetry"]
     assert tel["phases"] == 8 and tel["off"]["cycles"] > 0 and tel["on"]["cycles"] > 0
     assert tel["published"] > 0  # the "on" windows' samples reached the recording
+    assert tel["published"] + tel["dropped"] == tel["accepted"]
     assert tel["publisher"] == ("process" if process else "thread")
     assert 0.0 < tel["hook_p50_us"] <= tel["hook_p99_us"]  # the hook ran in the "on" windows
     if process:  # the publisher never holds the loop's interpreter: nothing to attribute

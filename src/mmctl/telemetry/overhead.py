@@ -245,6 +245,10 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
     rep["publisher"] = "process" if cfg.telemetry.process else "thread"
     rep["aa"] = aa
     rep["flush_max_us"] = max(rep["flush_max_us"], pub.flush_ns_max / 1e3)  # a child's: at close
+    # the run's totals once the publisher closed: every row the hook wrote (in the "on"
+    # windows and the settling after them) either reached the recording or was dropped
+    rep["accepted"], rep["published"], rep["dropped"] = (
+        pub.ring.accepted, pub.published, pub.ring.dropped)
     return rep
 
 
