@@ -4,9 +4,10 @@ The publisher slices the rows (:mod:`mmctl.telemetry.ring`) into one :class:`Col
 per rate: the full-rate series (every sample: the trial-metric inputs), the plot-rate
 series (every ``stride``-th cycle) and the loop timing.  What the loop leaves out of a
 row to keep its work small is derived here: positions in the mobile base frame
-(:func:`base_frame`) and the wheel speeds (:func:`wheel_speeds`).  The same row functions (:func:`force_norm`,
-:func:`ee_speed`) are used by the trial tracker, so metrics computed live and metrics
-recomputed from a recording see bit-identical inputs.
+(:func:`base_frame`) and the wheel speeds (:func:`wheel_speeds`).  The same row
+functions (:func:`force_norm`, :func:`ee_speed`, :func:`base_frame`) are used by the
+trial tracker, so metrics computed live and metrics recomputed from a recording see
+bit-identical inputs.
 """
 
 from __future__ import annotations

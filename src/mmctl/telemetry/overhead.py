@@ -271,7 +271,7 @@ def format_report(r: dict[str, Any]) -> str:
                  f"published {r['published']} samples, dropped {r['dropped']}, "
                  f"longest flush {r['flush_max_us']:.0f} us ({r['phases']} alternating phases)")
     if "hook_p99_us" in r:
-        lines.append(f"the loop's own telemetry work (sample + queue): p50 {r['hook_p50_us']:.1f} "
+        lines.append(f"the loop's own telemetry work (the hook: write the row): p50 {r['hook_p50_us']:.1f} "
                      f"us, p99 {r['hook_p99_us']:.1f} us per cycle")
     if r.get("misses_overlapping_publisher_on") is not None:
         lines.append(f"late cycles overlapping the publisher's work: "

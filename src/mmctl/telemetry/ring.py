@@ -10,11 +10,11 @@ takes the daemon's interpreter lock.
 Producer (the loop thread), :meth:`SampleRing.claim` / :meth:`~SampleRing.commit` (or
 :meth:`~SampleRing.put` for a :class:`~mmctl.telemetry.sample.TelemetrySample`): if
 ``head - tail`` reaches the capacity the sample is dropped and counted; otherwise it
-fills row ``head % size`` and only then stores ``head + 1``.  Consumer (the publisher), :meth:`SampleRing.take`:
-copies rows ``tail .. head - 1`` and only then stores the new tail.  Each counter has
-one writer, so no lock is taken and the loop never waits.  Across processes this relies
-on stores becoming visible in program order (x86-64's memory model; CPython does not
-reorder them).
+fills row ``head % size`` and only then stores ``head + 1``.  Consumer (the
+publisher), :meth:`SampleRing.take`: copies rows ``tail .. head - 1`` and only then
+stores the new tail.  Each counter has one writer, so no lock is taken and the loop
+never waits.  Across processes this relies on stores becoming visible in program order
+(x86-64's memory model; CPython does not reorder them).
 
 Besides the sample, a row carries the loop timing of the *previous* cycle (the loop's
 :attr:`TimingRing.newest <mmctl.runtime.timing.TimingRing.newest>` when the row is
