@@ -338,3 +338,20 @@ def test_control_core_fills_a_row_in_the_base_frame() -> None:
         dx, dy = world[0] - 0.4, world[1] + 0.2
         assert np.allclose(base_frame(row[None], cols)[0],
                            [c * dx + s * dy, -s * dx + c * dy, world[2]], atol=1e-15)
+
+
+def test_base_frame_of_one_row_is_bit_identical_to_the_same_row_among_many() -> None:
+    """The trial tracker converts its last row alone; the recording converts batches."""
+    rows = rows_of(list(synthetic_samples(97, start=3)))
+    rows[:, tr.BASE_YAW] = np.random.default_rng(7).uniform(-4.0, 4.0, len(rows))
+    for cols in (tr.P, tr.P_DES):
+        many = base_frame(rows, cols)
+        for i in (0, 1, 13, 96):
+            assert np.array_equal(base_frame(rows[i:i + 1], cols)[0], many[i])
+    # and it is the rotation of the offset from the base by -yaw
+    x, y, yaw = rows[5, tr.BASE_POSE]
+    px, py, pz = rows[5, tr.P]
+    c, s = math.cos(yaw), math.sin(yaw)
+    assert np.allclose(base_frame(rows, tr.P)[5],
+                       [c * (px - x) + s * (py - y), -s * (px - x) + c * (py - y), pz],
+                       rtol=0, atol=1e-15)
