@@ -325,6 +325,37 @@ def test_nan_in_the_wrench(world: World) -> None:
         devices.sensor = peer.inner
 
 
+def test_the_sample_hook_runs_after_the_stop_decision_and_before_the_motion_commands(
+        world: World) -> None:
+    """Telemetry goes before speedJ and the base twist (whose frames wake the device
+    threads); a stop is decided, and sent, before it."""
+    d = world.daemon
+    seen: list[tuple[dict[str, int], str]] = []
+    arm_until_ok(world)
+    world.sim.set_push(PUSH)
+    d.sample_hook = lambda r, cycle, t, safety: seen.append((dict(d.commands_sent), safety))
+    checked = 0
+    try:
+        for _ in range(20):
+            before = dict(d.commands_sent)
+            seen.clear()
+            d.step_once()
+            if d.safety.state is not SafetyState.ARMED:
+                break  # a load flake stopped the robot: the cycles before still count
+            (at_hook, safety), = seen
+            assert safety == "armed"
+            assert at_hook == before  # nothing of this cycle sent yet when the hook ran
+            assert d.commands_sent["speed_j"] == before["speed_j"] + 1  # then speedJ went out
+            checked += 1
+            time.sleep(0.002)
+    finally:
+        d.sample_hook = None
+        world.sim.set_push(None)
+        if d.safety.armed:
+            d.call("disable")
+    assert checked >= 1
+
+
 def test_loop_overrun_budget_on_the_real_loop(world: World) -> None:
     """Last: starts the loop thread, then a slow per-cycle hook overruns every deadline."""
     d = world.daemon
@@ -362,34 +393,3 @@ def _try_enable(d: Daemon) -> bool:
         return True
     except MmctlError:
         return False
-
-
-def test_the_sample_hook_runs_after_the_stop_decision_and_before_the_motion_commands(
-        world: World) -> None:
-    """Telemetry goes before speedJ and the base twist (whose frames wake the device
-    threads); a stop is decided, and sent, before it."""
-    d = world.daemon
-    seen: list[tuple[dict[str, int], str]] = []
-    arm_until_ok(world)
-    world.sim.set_push(PUSH)
-    d.sample_hook = lambda r, cycle, t, safety: seen.append((dict(d.commands_sent), safety))
-    checked = 0
-    try:
-        for _ in range(20):
-            before = dict(d.commands_sent)
-            seen.clear()
-            d.step_once()
-            if d.safety.state is not SafetyState.ARMED:
-                break  # a load flake stopped the robot: the cycles before still count
-            (at_hook, safety), = seen
-            assert safety == "armed"
-            assert at_hook == before  # nothing of this cycle sent yet when the hook ran
-            assert d.commands_sent["speed_j"] == before["speed_j"] + 1  # then speedJ went out
-            checked += 1
-            time.sleep(0.002)
-    finally:
-        d.sample_hook = None
-        world.sim.set_push(None)
-        if d.safety.armed:
-            d.call("disable")
-    assert checked >= 1
