@@ -39,6 +39,8 @@ class Series(NamedTuple):
 ENERGY = Series("plots/energy", "full", ("E_K", "E_K arm", "E_K base"), "J")
 FORCE_NORM = Series("plots/force/norm", "full", ("|f_h|",), "N")
 SPEED = Series("plots/speed", "full", ("|v_d|", "|v|"), "m/s")
+#: the tool position and FK(q_des) in the mobile base frame (the loop writes world positions;
+#: :func:`mmctl.telemetry.batch.base_frame` converts them)
 EE_POSITION = Series("plots/ee/position", "full", ("p x", "p y", "p z"), "m")
 EE_POSITION_DES = Series("plots/ee/position_des", "full", ("p_des x", "p_des y", "p_des z"), "m")
 LOOP_TIMING = Series("plots/loop/timing", "full",
