@@ -76,6 +76,15 @@ _HEADER = 8  #: int64 slots (4 spare)
 _NAN4: tuple[float, ...] = (math.nan,) * 4
 
 
+class _NoTiming:
+    """Stands in for the loop's TimingRing where there is none: timing unknown (NaN)."""
+
+    newest: tuple[float, ...] = _NAN4
+
+
+NO_TIMING = _NoTiming()
+
+
 def mode_code(label: str) -> float:
     """The row code of a mode label (-1: not one of :data:`MODES`)."""
     return _MODE_CODE.get(label, -1.0)
@@ -97,7 +106,8 @@ class SampleRing:
 
     size: capacity in rows (> 0); buffer: where the header and rows live (None: a
     private array; see :meth:`create_file` / :meth:`attach_file`); timing: the loop's
-    TimingRing, whose newest row is the previous cycle's timing (None: NaN).
+    TimingRing, whose newest row is the previous cycle's timing (None:
+    :data:`NO_TIMING`, NaN).
     """
 
     def __init__(self, size: int, buffer: Any = None, timing: Any = None):
@@ -110,15 +120,13 @@ class SampleRing:
         if len(buffer) < nbytes:
             raise ValueError(f"buffer holds {len(buffer)} bytes, {nbytes} needed for {size} rows")
         self._buffer = buffer
-        self._hdr = np.frombuffer(buffer, np.int64, _HEADER)
-        #: the header again as a memoryview of int64: the producer's reads and stores
-        #: of single counters give and take Python ints (no numpy scalar per access)
+        #: the header as a memoryview of int64: reads and stores of single counters give
+        #: and take Python ints (no numpy scalar per access on the loop)
         self._hv = memoryview(buffer)[:_HEADER * 8].cast("q")
         self.rows = np.frombuffer(buffer, np.float64, size * WIDTH,
                                   _HEADER * 8).reshape(size, WIDTH)
         self._views = list(self.rows)  #: one view per row, made once (claim returns them)
-        self._head = self._hv[_HEAD]  #: the producer's own copy of the head
-        self.timing = timing
+        self.timing = timing if timing is not None else NO_TIMING
         self._file: Path | None = None
 
     @staticmethod
@@ -173,7 +181,7 @@ class SampleRing:
         sample is dropped and counted).  Fill it (:func:`encode`, or the loop's
         ``ControlCore.fill_row``), then :meth:`commit`.  Never blocks."""
         hv = self._hv
-        head = self._head
+        head = hv[_HEAD]
         if head - hv[_TAIL] >= self.size:
             hv[_DROPPED] += 1
             return None
@@ -181,58 +189,51 @@ class SampleRing:
 
     def commit(self) -> None:
         """Publish the row :meth:`claim` returned."""
-        self._head += 1
-        self._hv[_HEAD] = self._head
-
-    def prev_timing(self) -> tuple[float, ...]:
-        """The loop's newest timing (latency, compute, slack, missed) [ns] for the row
-        being written: the previous cycle's (NaN without a timing ring)."""
-        timing = self.timing
-        return timing.newest if timing is not None else _NAN4
+        self._hv[_HEAD] += 1
 
     def put(self, s: TelemetrySample) -> bool:
         """Append one sample; False if the ring was full (dropped, counted)."""
         row = self.claim()
         if row is None:
             return False
-        encode(s, row, self.prev_timing())
+        encode(s, row, self.timing.newest)
         self.commit()
         return True
 
     # -- consumer --------------------------------------------------------------------------
     def take(self, limit: int | None = None) -> F64:
         """Remove and return the queued rows, oldest first ((n, WIDTH) copy)."""
-        hdr = self._hdr
-        tail = int(hdr[_TAIL])
-        n = int(hdr[_HEAD]) - tail
+        hv = self._hv
+        tail = hv[_TAIL]
+        n = hv[_HEAD] - tail
         if limit is not None:
             n = min(n, limit)
         if n <= 0:
             return np.empty((0, WIDTH))
         idx = np.arange(tail, tail + n) % self.size
         out = self.rows[idx]  # fancy indexing copies
-        hdr[_TAIL] = tail + n
+        hv[_TAIL] = tail + n
         return out
 
     def mark_published(self, n: int) -> None:
         """Count ``n`` rows as handed to the sink (consumer side)."""
-        self._hdr[_PUBLISHED] += n
+        self._hv[_PUBLISHED] += n
 
     # -- counters (any side) -----------------------------------------------------------------
     @property
     def accepted(self) -> int:
-        return int(self._hdr[_HEAD])
+        return self._hv[_HEAD]
 
     @property
     def dropped(self) -> int:
-        return int(self._hdr[_DROPPED])
+        return self._hv[_DROPPED]
 
     @property
     def published(self) -> int:
-        return int(self._hdr[_PUBLISHED])
+        return self._hv[_PUBLISHED]
 
     def __len__(self) -> int:
-        return int(self._hdr[_HEAD]) - int(self._hdr[_TAIL])
+        return self._hv[_HEAD] - self._hv[_TAIL]
 
 
 def encode(s: TelemetrySample, row: F64, prev: tuple[float, ...] = _NAN4) -> None:
@@ -261,4 +262,3 @@ def rows_of(samples: list[TelemetrySample]) -> F64:
     for s, row in zip(samples, out, strict=True):
         encode(s, row)
     return out
-

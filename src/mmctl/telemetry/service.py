@@ -12,7 +12,6 @@ except while a trial is bracketed, when it fills a scratch row for the tracker.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -116,18 +115,19 @@ class TelemetryService:
         pub, tracker = self.publisher, self.tracker
         fill, observe = core.fill_row, tracker.observe_row
         scratch = np.full(ring.WIDTH, np.nan)
-        no_timing = (math.nan,) * 4
         if pub is None:
             if not tracker.active:
                 return None
 
+            unknown = ring.NO_TIMING.newest
+
             def trial_only(r: Any, cycle: int, t: float, safety: str) -> None:
-                fill(r, cycle, t, safety, no_timing, scratch)
+                fill(r, cycle, t, safety, unknown, scratch)
                 observe(scratch)
 
             return trial_only
         claim, commit = pub.ring.claim, pub.ring.commit
-        timing = pub.ring.timing if pub.ring.timing is not None else _NoTiming()
+        timing = pub.ring.timing  # the loop's TimingRing, or NO_TIMING
 
         def both(r: Any, cycle: int, t: float, safety: str) -> None:
             row = claim()
@@ -189,8 +189,3 @@ class TelemetryService:
         if pub is not None:
             pub.post_event(event)
 
-
-class _NoTiming:
-    """Stands in for a TimingRing when the publisher has none: timing unknown (NaN)."""
-
-    newest: tuple[float, ...] = (math.nan,) * 4

@@ -78,7 +78,8 @@ class TrialRows:
         self.e: list[float] = []
         self.f: list[float] = []
         self.v: list[float] = []
-        self.last: Any = None  #: the newest row (its positions give x_f)
+        #: the newest row, copied in place each cycle (its positions give x_f)
+        self.last = np.full(ring.WIDTH, np.nan)
 
 
 class TrialTracker:
@@ -131,7 +132,7 @@ class TrialTracker:
         rows.e.append(float(row[ring.E_TOTAL]))
         rows.f.append(norm3(row[ring.F_H]))
         rows.v.append(norm3(row[ring.V]))
-        rows.last = row.copy()
+        rows.last[:] = row
         rows.stop_cycle = cycle
         rows.stop_t = t
 
