@@ -70,3 +70,54 @@ def test_pairwise_growth_ignores_a_burst_in_one_pair() -> None:
     assert pooled["compute_p99_growth"] > 1.0  # the pooled p99 took the burst
     assert pooled["compute_p99_growth_pair_median"] == 0.05
     assert _pairs(phases[:1]) == {}
+
+
+def _phases(pairs: int, on_scale: float, misses_on: int = 0, seed: int = 3) -> list:
+    """Alternating off/on windows of 1000 gamma-distributed compute times whose scale
+    drifts from pair to pair (the machine); "on" multiplies them by ``on_scale`` and
+    has ``misses_on`` late cycles (one in every 1000 cycles in both conditions too)."""
+    from mmctl.telemetry.overhead import Phase
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(pairs):
+        drift = 1.0 + 0.1 * np.sin(i)
+        for on in (False, True):
+            c = rng.gamma(20.0, 15_000.0, 1000) * drift * (on_scale if on else 1.0)
+            missed = np.zeros(1000, np.int64)
+            missed[500] = 1
+            missed[:misses_on if on else 0] = 1
+            s = TimingSnapshot(np.arange(1000, dtype=np.int64) * P, np.zeros(1000, np.int64),
+                               c.astype(np.int64), np.zeros(1000, np.int64), missed, 0)
+            out.append(Phase(on, s, 0, 0, 0.0))
+    return out
+
+
+def test_growth_interval_covers_the_true_growth_and_judges_the_target() -> None:
+    from mmctl.telemetry.overhead import growth_interval, verdict
+
+    ci = growth_interval(_phases(60, 1.05))
+    lo, hi = ci["compute_p99_growth_ci"]
+    assert ci["pairs"] == 60 and ci["confidence"] == 0.95
+    assert lo < 0.05 < hi and hi - lo < 0.05  # the true +5 %, to within a few per cent
+    assert ci["extra_misses_per_1e5_ci"] == [0.0, 0.0]  # the same misses in both
+    lines = verdict({"interval": ci}).splitlines()
+    assert lines[0].startswith("target telemetry compute p99 growth < 10 %: met")
+    assert "none shown" in lines[1]
+
+    worse = growth_interval(_phases(60, 1.25, misses_on=3))
+    assert worse["compute_p99_growth_ci"][0] > 0.2
+    assert worse["extra_misses_per_1e5"] == 300.0  # 3 more in every 1000 cycles
+    assert worse["extra_misses_per_1e5_ci"][0] > 0
+    lines = verdict({"interval": worse}).splitlines()
+    assert "NOT met" in lines[0] and "telemetry adds misses" in lines[1]
+
+
+def test_growth_interval_of_an_aa_contains_zero_and_needs_pairs() -> None:
+    from mmctl.telemetry.overhead import MIN_PAIRS, growth_interval, verdict
+
+    ci = growth_interval(_phases(40, 1.0))
+    lo, hi = ci["compute_p99_growth_ci"]
+    assert lo < 0.0 < hi
+    assert growth_interval(_phases(MIN_PAIRS - 1, 1.0)) == {}
+    assert "too few" in verdict({"interval": {}})

@@ -245,11 +245,13 @@ def _print_table(r: dict[str, Any]) -> None:
         print(f"{label:22}{comp:>28}{step:>16}{lat:>30}{100 * f['miss_rate']:>10.2f}%")
     if "telemetry" in r:
         from mmctl.telemetry.overhead import format_report
+        from mmctl.telemetry.overhead import verdict as telemetry_verdict
 
         t = r["telemetry"]
         print(f"\ntelemetry off vs on (daemon loop, {t['phases']} alternating "
               f"{r['seconds'] / t['phases']:g} s windows):")
         print(format_report(r["telemetry"]))
+        print(telemetry_verdict(r["telemetry"]))
     print(verdict(r))
 
 

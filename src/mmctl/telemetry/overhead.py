@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import sys
 import tempfile
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -155,6 +156,93 @@ def _pairs(phases: list[Phase]) -> dict[str, Any]:
             "extra_misses_pairs": extra_misses}
 
 
+MIN_PAIRS = 5
+"""Fewest (off, on) window pairs a confidence interval is given for."""
+
+
+class _PairHistograms(NamedTuple):
+    """Per (off, on) window pair: compute-time histograms [1 us bins], cycles, misses."""
+
+    off: np.ndarray  # (pairs, bins) counts
+    on: np.ndarray
+    cycles: np.ndarray  # (pairs, 2): off, on
+    misses: np.ndarray  # (pairs, 2)
+
+
+def _pair_histograms(phases: list[Phase]) -> _PairHistograms | None:
+    pairs = [(a, b) for a, b in zip(phases[::2], phases[1::2], strict=False)
+             if not a.telemetry and b.telemetry and len(a.snapshot) and len(b.snapshot)]
+    if len(pairs) < MIN_PAIRS:
+        return None
+    top = max(int(np.max(p.snapshot.compute_ns)) for pair in pairs for p in pair) // 1000 + 2
+    edges = np.arange(top + 1, dtype=float)
+
+    def hist(p: Phase) -> np.ndarray:
+        return np.histogram(p.snapshot.compute_ns / 1e3, edges)[0].astype(float)
+
+    return _PairHistograms(
+        np.array([hist(a) for a, _ in pairs]), np.array([hist(b) for _, b in pairs]),
+        np.array([[len(a.snapshot), len(b.snapshot)] for a, b in pairs], dtype=float),
+        np.array([[a.snapshot.missed.sum(), b.snapshot.missed.sum()] for a, b in pairs],
+                 dtype=float))
+
+
+def _quantile_us(hist: np.ndarray, q: float) -> np.ndarray:
+    """The ``q`` quantile [us] of each pooled histogram (rows of 1 us bins): the upper
+    edge of the first bin where the cumulative count reaches ``q`` of the total."""
+    cum = np.cumsum(hist, axis=-1)
+    return np.argmax(cum >= q * cum[..., -1:], axis=-1) + 1.0
+
+
+def growth_interval(phases: list[Phase], confidence: float = 0.95, resamples: int = 2000,
+                    seed: int = 0) -> dict[str, Any]:
+    """Confidence intervals of the telemetry cost, resampling whole (off, on) pairs.
+
+    A window pair is the unit that is independent of the others (the machine's bursts
+    last a window or two; cycles within a window are not independent), so a bootstrap
+    over pairs (scipy's BCa) gives the uncertainty of: the pooled compute p99 growth
+    (each resample pools its pairs' histograms, 1 us bins) and the extra misses per
+    10^5 cycles with telemetry on.  {} with fewer than :data:`MIN_PAIRS` pairs.
+    """
+    from scipy import stats
+
+    h = _pair_histograms(phases)
+    if h is None:
+        return {}
+
+    def weights(idx: np.ndarray) -> np.ndarray:  # (..., n) resampled pair indices -> counts
+        flat = idx.reshape(-1, idx.shape[-1])
+        w = np.zeros((flat.shape[0], len(h.off)))
+        np.add.at(w, (np.arange(flat.shape[0])[:, None], flat), 1.0)
+        return w.reshape(*idx.shape[:-1], len(h.off))
+
+    def growth(idx: np.ndarray, axis: int = -1) -> np.ndarray:
+        w = weights(idx)
+        return _quantile_us(w @ h.on, 0.99) / _quantile_us(w @ h.off, 0.99) - 1.0
+
+    def extra_misses(idx: np.ndarray, axis: int = -1) -> np.ndarray:
+        w = weights(idx)
+        rate = (w @ h.misses) / (w @ h.cycles)
+        return 1e5 * (rate[..., 1] - rate[..., 0])
+
+    idx = np.arange(len(h.off))
+    out: dict[str, Any] = {"confidence": confidence, "pairs": len(idx)}
+    for key, stat in (("compute_p99_growth", growth), ("extra_misses_per_1e5", extra_misses)):
+        with warnings.catch_warnings():  # a degenerate statistic (0/0 in BCa) is handled below
+            warnings.simplefilter("ignore", stats.DegenerateDataWarning)
+            warnings.simplefilter("ignore", RuntimeWarning)
+            res = stats.bootstrap((idx,), stat, vectorized=True, n_resamples=resamples,
+                                  confidence_level=confidence, method="BCa", batch=200,
+                                  rng=np.random.default_rng(seed))
+        lo, hi = res.confidence_interval
+        point = float(stat(idx))
+        if not np.isfinite(lo) or not np.isfinite(hi):  # degenerate (e.g. no misses at all)
+            lo = hi = point
+        out[key] = round(point, 4)
+        out[key + "_ci"] = [round(float(lo), 4), round(float(hi), 4)]
+    return out
+
+
 def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = None,
             lead_ns: int = 0, hook_ns: np.ndarray | None = None) -> dict[str, Any]:
     s_off, s_on = _pool(phases, False), _pool(phases, True)
@@ -171,6 +259,7 @@ def _report(phases: list[Phase], busy: tuple[np.ndarray, np.ndarray] | None = No
         "flush_max_us": max(p.flush_max_us for p in phases),
         "phases": len(phases),
         **_pairs(phases),
+        "interval": growth_interval(phases),
     }
     if hook_ns is not None:
         on_hook = np.concatenate([cycle_rows(hook_ns, p.snapshot) for p in phases if p.telemetry]
@@ -270,6 +359,14 @@ def format_report(r: dict[str, Any]) -> str:
     lines.append(f"compute p99 growth with telemetry: {100 * r['compute_p99_growth']:+.1f} %; "
                  f"published {r['published']} samples, dropped {r['dropped']}, "
                  f"longest flush {r['flush_max_us']:.0f} us ({r['phases']} alternating phases)")
+    ci = r.get("interval") or {}
+    if ci:
+        g_lo, g_hi = ci["compute_p99_growth_ci"]
+        m_lo, m_hi = ci["extra_misses_per_1e5_ci"]
+        pct = round(100 * ci["confidence"])
+        lines.append(f"{pct} % confidence intervals (bootstrap over {ci['pairs']} window "
+                     f"pairs): compute p99 growth {100 * g_lo:+.1f} .. {100 * g_hi:+.1f} %, "
+                     f"extra misses {m_lo:+.1f} .. {m_hi:+.1f} per 10^5 cycles")
     if "hook_p99_us" in r:
         lines.append(f"the loop's own telemetry work (the hook: write the row): p50 {r['hook_p50_us']:.1f} "
                      f"us, p99 {r['hook_p99_us']:.1f} us per cycle")
@@ -278,3 +375,30 @@ def format_report(r: dict[str, Any]) -> str:
                      f"{r['misses_overlapping_publisher_on']} of {r['misses_on']} (on), "
                      f"{r['misses_overlapping_publisher_off']} of {r['misses_off']} (off)")
     return "\n".join(lines)
+
+
+GROWTH_TARGET = 0.10
+"""The telemetry target: loop compute p99 grows by less than this fraction."""
+
+
+def verdict(r: dict[str, Any]) -> str:
+    """The telemetry targets, judged on the confidence intervals: compute p99 growth <
+    10 % (met when the whole interval is below), no missed deadlines caused by telemetry
+    (none shown while the extra-miss interval reaches down to 0)."""
+    ci = r.get("interval") or {}
+    if not ci:
+        return "telemetry targets: too few window pairs to judge"
+    pct = round(100 * ci["confidence"])
+    g_lo, g_hi = ci["compute_p99_growth_ci"]
+    if g_hi < GROWTH_TARGET:
+        g = f"met (the {pct} % CI ends at {100 * g_hi:+.1f} %)"
+    elif g_lo >= GROWTH_TARGET:
+        g = f"NOT met (the {pct} % CI starts at {100 * g_lo:+.1f} %)"
+    else:
+        g = f"undecided (the {pct} % CI, {100 * g_lo:+.1f} .. {100 * g_hi:+.1f} %, spans it)"
+    m_lo, _ = ci["extra_misses_per_1e5_ci"]
+    m = ("none shown (the CI of the extra misses reaches 0)" if m_lo <= 0 else
+         f"telemetry adds misses (the {pct} % CI starts at {m_lo:+.1f} per 10^5 cycles)")
+    aa = " [A/A check: both should hold]" if r.get("aa") else ""
+    return (f"target telemetry compute p99 growth < {100 * GROWTH_TARGET:g} %: {g}\n"
+            f"target no missed deadlines caused by telemetry: {m}{aa}")
