@@ -30,7 +30,8 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
     path = tmp_path / "bench.yaml"
     path.write_text(yaml.safe_dump(cfg))
     rc = main(["bench", "loop", "--seconds", "1", "--json", "--telemetry", "--config", str(path),
-               "--host", loopback_host, "--cpu-dma-latency", "1500", "--telemetry-windows", "4"])
+               "--host", loopback_host, "--cpu-dma-latency", "1500", "--telemetry-seconds", "2",
+               "--telemetry-windows", "5"])
     assert rc == 0
     rep = json.loads(capsys.readouterr().out)
     # the daemon held the PM QoS request for the run (where this machine allows it) and
@@ -46,7 +47,12 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
         assert 0.0 < fig["compute_p50_us"] <= fig["compute_p99_us"] <= fig["compute_max_us"]
         assert fig["latency_p50_us"] <= fig["latency_p99_us"] <= fig["latency_p999_us"]
     tel = rep["telemetry"]
-    assert tel["phases"] == 8 and tel["off"]["cycles"] > 0 and tel["on"]["cycles"] > 0
+    assert rep["telemetry_seconds"] == 2.0
+    assert tel["phases"] == 10 and tel["off"]["cycles"] > 0 and tel["on"]["cycles"] > 0
+    ci = tel["interval"]  # bootstrap over the 5 window pairs
+    assert ci["pairs"] == 5 and ci["confidence"] == 0.95
+    for key in ("compute_p99_growth_ci", "extra_misses_per_1e5_ci"):
+        assert ci[key][0] <= ci[key][1], key
     assert tel["published"] > 0  # the "on" windows' samples reached the recording
     assert tel["published"] + tel["dropped"] == tel["accepted"]
     assert tel["publisher"] == ("process" if process else "thread")
@@ -81,3 +87,10 @@ def test_a_bad_cpu_list_is_refused_naming_the_value(text: str,
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "--cpu-affinity" in err and repr(text) in err
+
+
+@pytest.mark.parametrize("flag", ["--seconds", "--telemetry-seconds"])
+def test_a_non_positive_duration_is_refused_naming_the_flag(
+        flag: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "loop", "--telemetry", flag, "0"]) != 0
+    assert f"{flag} 0: must be > 0" in capsys.readouterr().err

@@ -50,10 +50,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "recording to a temporary .rrd) in --telemetry-windows pairs of "
                         "alternating windows of the same run, --seconds in all; JSON key "
                         "'telemetry'")
+    p.add_argument("--telemetry-seconds", type=float, metavar="S",
+                   help="time measured with telemetry off and on, in all (default: "
+                        "--seconds); a few minutes narrow the confidence intervals")
     p.add_argument("--telemetry-windows", type=int, metavar="N",
                    help="off/on window pairs for --telemetry (default: one pair per second "
-                        "of --seconds, at least 10): short windows spread the machine's "
-                        "bursts over both conditions")
+                        "of --telemetry-seconds, at least 10): short windows spread the "
+                        "machine's bursts over both conditions")
     p.add_argument("--telemetry-aa", action="store_true",
                    help="--telemetry as an A/A check: the 'on' windows install no hook "
                         "either (the growth it prints is the comparison's own noise)")
@@ -99,8 +102,12 @@ def run(args: argparse.Namespace) -> int:
     args.telemetry = args.telemetry or args.telemetry_aa
     if args.windows < 1:
         raise MmctlError(f"--windows {args.windows}: must be >= 1")
+    if args.telemetry_seconds is None:
+        args.telemetry_seconds = args.seconds
+    if args.telemetry_seconds <= 0:
+        raise MmctlError(f"--telemetry-seconds {args.telemetry_seconds:g}: must be > 0")
     if args.telemetry_windows is None:
-        args.telemetry_windows = max(10, round(args.seconds))
+        args.telemetry_windows = max(10, round(args.telemetry_seconds))
     if args.telemetry_windows < 1:
         raise MmctlError(f"--telemetry-windows {args.telemetry_windows}: must be >= 1")
     if args.cpu_dma_latency is not None and not -1 <= args.cpu_dma_latency <= MAX_US:
@@ -186,7 +193,8 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         if args.telemetry:
             from mmctl.telemetry.overhead import windows_on_daemon
 
-            result["telemetry"] = windows_on_daemon(daemon, args.seconds,
+            result["telemetry_seconds"] = args.telemetry_seconds
+            result["telemetry"] = windows_on_daemon(daemon, args.telemetry_seconds,
                                                     phases=2 * args.telemetry_windows,
                                                     aa=args.telemetry_aa)
             result["telemetry"]["armed_at_end"] = daemon.safety.armed
@@ -249,7 +257,7 @@ def _print_table(r: dict[str, Any]) -> None:
 
         t = r["telemetry"]
         print(f"\ntelemetry off vs on (daemon loop, {t['phases']} alternating "
-              f"{r['seconds'] / t['phases']:g} s windows):")
+              f"{r['telemetry_seconds'] / t['phases']:g} s windows):")
         print(format_report(r["telemetry"]))
         print(telemetry_verdict(r["telemetry"]))
     print(verdict(r))
