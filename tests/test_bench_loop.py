@@ -64,6 +64,16 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
         assert 0 <= tel["misses_overlapping_publisher_on"] <= tel["misses_on"]
         assert 0 <= tel["misses_overlapping_publisher_off"] <= tel["misses_off"]
     assert rep["targets"]["compute_p99_us"] == 300.0
+    assert rep["faults"] >= 0 and isinstance(rep["faults"], int)
+
+
+def test_a_fault_during_the_run_is_flagged() -> None:
+    from mmctl.commands.bench_loop import fault_warning
+
+    assert fault_warning({"faults": 0}) is None
+    text = fault_warning({"faults": 2})
+    assert text is not None and text.startswith("WARNING: the robot faulted 2 time(s)")
+    assert "disarmed loop" in text
 
 
 def test_verdict_names_each_target_met_or_not_and_against_sleep() -> None:

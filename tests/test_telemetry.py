@@ -340,6 +340,51 @@ def test_control_core_fills_a_row_in_the_base_frame() -> None:
                            [c * dx + s * dy, -s * dx + c * dy, world[2]], atol=1e-15)
 
 
+def test_a_row_of_an_idle_cycle_holds_the_measured_end_effector_speed() -> None:
+    """Not commanding (disarmed, stopped): v = J(q) q̇ from the measured velocities,
+    exactly 0 when they are all 0 (then without computing a Jacobian)."""
+    import time
+
+    from mmctl.config import default_config
+    from mmctl.runtime.core import ControlCore
+    from mmctl.types import ArmState, Odometry, Wrench
+
+    cfg = default_config()
+    core = ControlCore(cfg)
+    q_arm = np.asarray(cfg.robot.q_des, dtype=float)
+    now = time.monotonic()
+    wrench = Wrench(np.zeros(3), np.zeros(3), now, 0)
+    row = np.full(tr.WIDTH, np.nan)
+    still = core.step(ArmState(q_arm.copy(), np.zeros(6), 0.0, 2, 0), wrench,
+                      Odometry(0.4, -0.2, 0.5, 0.0, 0.0, 0.0, now), 0.002, active=False,
+                      now=now)
+    qd_arm = np.array([0.1, -0.2, 0.3, 0.0, 0.05, -0.1])
+    moving = core.step(ArmState(q_arm.copy(), qd_arm, 0.0, 2, 0), wrench,
+                       Odometry(0.4, -0.2, 0.5, 0.02, 0.0, 0.1, now), 0.002, active=False,
+                       now=now)
+    assert still.out is None and moving.out is None
+    expected = core.model.jacobian(moving.q) @ moving.qd
+
+    class CountingModel:
+        def __init__(self, model: object) -> None:
+            self.model, self.jacobians = model, 0
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(self.model, name)
+
+        def jacobian(self, q: np.ndarray) -> np.ndarray:
+            self.jacobians += 1
+            return self.model.jacobian(q)  # type: ignore[attr-defined]
+
+    core.model = counting = CountingModel(core.model)  # type: ignore[assignment]
+    core.fill_row(still, 1, 0.002, "disarmed", (0, 0, 0, 0), row)
+    assert np.array_equal(row[tr.V], np.zeros(6)) and counting.jacobians == 0
+    core.fill_row(moving, 2, 0.004, "disarmed", (0, 0, 0, 0), row)
+    assert counting.jacobians == 1
+    assert np.linalg.norm(expected) > 0.1
+    assert np.allclose(row[tr.V], expected, rtol=0, atol=1e-12)
+
+
 def test_base_frame_of_one_row_is_bit_identical_to_the_same_row_among_many() -> None:
     """The trial tracker converts its last row alone; the recording converts batches."""
     rows = rows_of(list(synthetic_samples(97, start=3)))

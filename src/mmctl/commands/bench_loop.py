@@ -198,6 +198,7 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
                                                     phases=2 * args.telemetry_windows,
                                                     aa=args.telemetry_aa)
             result["telemetry"]["armed_at_end"] = daemon.safety.armed
+        result["faults"] = daemon.safety.faults
     finally:
         daemon.shutdown()
     return result
@@ -260,7 +261,19 @@ def _print_table(r: dict[str, Any]) -> None:
               f"{r['telemetry_seconds'] / t['phases']:g} s windows):")
         print(format_report(r["telemetry"]))
         print(telemetry_verdict(r["telemetry"]))
+    warning = fault_warning(r)
+    if warning:
+        print(warning)
     print(verdict(r))
+
+
+def fault_warning(r: dict[str, Any]) -> str | None:
+    """A line for a run during which the robot faulted (None: it stayed armed)."""
+    if not r.get("faults"):
+        return None
+    return (f"WARNING: the robot faulted {r['faults']} time(s) during the run (the fault "
+            f"events are in the log on stderr): the figures after a fault are of a disarmed "
+            f"loop, which skips the control step and the motion commands")
 
 
 def verdict(r: dict[str, Any]) -> str:

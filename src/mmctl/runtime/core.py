@@ -167,12 +167,14 @@ class ControlCore:
         The row holds what the cycle has at hand (world-frame positions; the consumer
         derives the base frame and the wheel speeds); ``v`` is the step's own J(q) q̇ (no
         second Jacobian on the loop), or J(q) q̇ from the measured velocities when the
-        controller did not run.
+        controller did not run (0 without a Jacobian when they are all 0).
         """
         q = r.q
         mode = self.mode if self.mode != "switch" else f"switch/{self.switch}"
         if r.out is not None:
             v = r.out.v
+        elif not r.qd.any():  # standing still (disarmed, stopped): J(q) 0 is 0, no Jacobian
+            v = _Z6
         else:
             jac = self.model.jacobian(q) if math.isfinite(float(q @ q)) else np.zeros((6, 9))
             v = jac @ r.qd
