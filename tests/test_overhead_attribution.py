@@ -121,3 +121,24 @@ def test_growth_interval_of_an_aa_contains_zero_and_needs_pairs() -> None:
     assert lo < 0.0 < hi
     assert growth_interval(_phases(MIN_PAIRS - 1, 1.0)) == {}
     assert "too few" in verdict({"interval": {}})
+
+
+def test_a_stall_of_the_machine_changes_no_interval() -> None:
+    """Cycles beyond every window's p99 share the histograms' last bin: the longest
+    cycle of the run stretched to 60 ms gives the same intervals, and the histograms
+    stay as wide as the largest window p99, not the stall."""
+    from mmctl.telemetry.overhead import Phase, _pair_histograms, growth_interval
+
+    calm = _phases(20, 1.05)
+    k = int(np.argmax([p.snapshot.compute_ns.max() for p in calm]))
+    s = calm[k].snapshot
+    c = s.compute_ns.copy()
+    c[np.argmax(c)] = 60_000_000  # 60 ms
+    stalled = list(calm)
+    stalled[k] = Phase(calm[k].telemetry, TimingSnapshot(s.deadline_ns, s.latency_ns, c,
+                                                         s.slack_ns, s.missed, 0), 0, 0, 0.0)
+    assert growth_interval(stalled) == growth_interval(calm)
+    hist = _pair_histograms(stalled)
+    assert hist is not None
+    assert hist.off.shape[1] == hist.on.shape[1] < 2000  # [1 us bins]; the stall: 60 000
+    assert hist.on.sum() + hist.off.sum() == 40 * 1000  # no cycle lost

@@ -134,6 +134,12 @@ def overlapping_misses(snap: TimingSnapshot, lead_ns: int, starts: np.ndarray,
     return n
 
 
+def _window_pairs(phases: list[Phase]) -> list[tuple[Phase, Phase]]:
+    """The adjacent (off, on) window pairs that both hold cycles."""
+    return [(off, on) for off, on in zip(phases[::2], phases[1::2], strict=False)
+            if not off.telemetry and on.telemetry and len(off.snapshot) and len(on.snapshot)]
+
+
 def _pairs(phases: list[Phase]) -> dict[str, Any]:
     """Growth of compute p99 within each adjacent (off, on) window pair, and its median.
 
@@ -142,9 +148,7 @@ def _pairs(phases: list[Phase]) -> dict[str, Any]:
     the pairwise growths ignores such a burst unless it hits most pairs.
     """
     growths, extra_misses = [], []
-    for off, on in zip(phases[::2], phases[1::2], strict=False):
-        if off.telemetry or not on.telemetry or not len(off.snapshot) or not len(on.snapshot):
-            continue
+    for off, on in _window_pairs(phases):
         p_off = float(np.percentile(off.snapshot.compute_ns, 99))
         p_on = float(np.percentile(on.snapshot.compute_ns, 99))
         growths.append(p_on / p_off - 1.0)
@@ -170,15 +174,20 @@ class _PairHistograms(NamedTuple):
 
 
 def _pair_histograms(phases: list[Phase]) -> _PairHistograms | None:
-    pairs = [(a, b) for a, b in zip(phases[::2], phases[1::2], strict=False)
-             if not a.telemetry and b.telemetry and len(a.snapshot) and len(b.snapshot)]
+    """Histograms up to the largest window p99: a pool of windows has its p99 at or
+    below that (each window has 99 % of its cycles there), so longer cycles all go into
+    the last bin without changing any pooled p99, and a stall of the machine does not
+    make the histograms tens of thousands of bins wide."""
+    pairs = _window_pairs(phases)
     if len(pairs) < MIN_PAIRS:
         return None
-    top = max(int(np.max(p.snapshot.compute_ns)) for pair in pairs for p in pair) // 1000 + 2
-    edges = np.arange(top + 1, dtype=float)
+    cap = max(int(np.percentile(p.snapshot.compute_ns, 99, method="higher"))
+              for pair in pairs for p in pair) // 1000
+    bins = cap + 2
 
     def hist(p: Phase) -> np.ndarray:
-        return np.histogram(p.snapshot.compute_ns / 1e3, edges)[0].astype(float)
+        us = np.minimum(p.snapshot.compute_ns // 1000, bins - 1)
+        return np.bincount(us, minlength=bins).astype(float)
 
     return _PairHistograms(
         np.array([hist(a) for a, _ in pairs]), np.array([hist(b) for _, b in pairs]),
@@ -216,6 +225,7 @@ def growth_interval(phases: list[Phase], confidence: float = 0.95, resamples: in
         np.add.at(w, (np.arange(flat.shape[0])[:, None], flat), 1.0)
         return w.reshape(*idx.shape[:-1], len(h.off))
 
+    # ``axis``: scipy's vectorized statistic signature; resamples run along the last axis
     def growth(idx: np.ndarray, axis: int = -1) -> np.ndarray:
         w = weights(idx)
         return _quantile_us(w @ h.on, 0.99) / _quantile_us(w @ h.off, 0.99) - 1.0
