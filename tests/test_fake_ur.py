@@ -367,3 +367,24 @@ def _check_receive_interface(host: str, fake: FakeURController) -> None:
     assert recv.getActualDigitalInputBits() == 1 << 3
     assert recv.getJointMode() == [253] * 6
     assert 0.05 < recv.getTimestamp() <= fake.state().controller_time
+
+
+def test_command_log_entries_are_not_tracked_by_the_garbage_collector() -> None:
+    """A full ring of tracked entries made each full collection of the fake's process
+    take ~60 ms: the daemon saw the controller's clock stall and faulted."""
+    import gc
+
+    ring = CommandLog(capacity=100)
+    for i in range(150):
+        ring.add(i * DT, CommandKind.SPEEDJ, qd=(0.1, 0.0, -0.1, 0.0, 0.0, 0.2),
+                 acceleration=1.4, time=0.002)
+    ring.add(150 * DT, CommandKind.DASHBOARD, text="play", reply="Starting program")
+    gc.collect()
+    assert not any(gc.is_tracked(e) for e in ring._ring)
+    entries = ring.since(149)
+    assert [e.seq for e in entries] == [149, 150]
+    assert entries[0].kind is CommandKind.SPEEDJ and entries[0].qd == (0.1, 0.0, -0.1, 0.0, 0.0, 0.2)
+    assert entries[0].acceleration == 1.4 and entries[0].deceleration is None
+    assert entries[1].kind is CommandKind.DASHBOARD and entries[1].reply == "Starting program"
+    with pytest.raises(TypeError, match="unknown command log fields"):
+        ring.add(0.0, CommandKind.SPEEDJ, speed=1.0)
