@@ -157,6 +157,42 @@ def test_caller_paced_requests_go_out_only_when_asked() -> None:
     assert w3.force[0] == pytest.approx(MATRIX[0, 0] * 40 / CPF)
 
 
+def test_the_tail_of_an_abandoned_reply_is_skipped_not_a_fault() -> None:
+    """A reply cut by a stall: its frame 1 comes, its frame 2 only after the client has
+    given the request up and asked again.  That lone frame 2 is the old reply's tail
+    (the daemon faulted on it, `sensor_link_lost`, in a 10-minute bench run); the new
+    reply after it is read as usual."""
+    import time
+
+    ch, base = channel(), 0x23
+    requests, replies = calibration_script(base)
+    sg1, sg2, sg3 = (1, 2, 3, 4, 5, 6), (7, 8, 9, 10, 11, 12), (40, 0, 0, 0, 0, 0)
+    gauge_req = (base << 4 | 0x0, b"")
+    first2, second2 = gauge_frames(base, 0, sg2)
+    script = replies + [
+        gauge_frames(base, 0, sg1),  # connect's read
+        [first2],  # the pipelined request: only frame 1 comes in time
+        [],  # read() asked again at once: no answer
+        [second2] + gauge_frames(base, 0, sg3),  # after the stall: the old tail, then a reply
+    ]
+    peer = ScriptedPeer(ch, script)
+    peer.start()
+    sensor = CanForceSensor(can_cfg(ch, base_id=base, timeout=0.2, connect_timeout=5.0),
+                            stale_timeout=10.0)
+    try:
+        sensor.connect()
+        w1 = sensor.read()  # frame 1 only: no new sample, the last one
+        time.sleep(0.3)  # a stall longer than the reply timeout: the request is abandoned
+        w2 = sensor.read()  # drops the queue, asks again: the tail, then the reply
+    finally:
+        sensor.close()
+        peer.finish()
+    assert peer.seen == requests + [gauge_req] * 4
+    assert w1.sequence == 1 and w2.sequence == 2
+    assert w2.force[0] == pytest.approx(MATRIX[0, 0] * 40 / CPF)
+    assert sensor.stats().lost == 1
+
+
 def test_non_si_units_are_refused_with_a_clear_message() -> None:
     ch = channel()
     _, replies = calibration_script(0x20, units=b"\x01\x01")

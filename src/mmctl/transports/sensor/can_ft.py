@@ -181,6 +181,7 @@ class CanForceSensor:
         self._pending: float | None = None  # monotonic time the request in flight was sent
         self._caller_paced = False  # request_next() was called: it sends the requests
         self._first: bytes | None = None  # gauge frame 1 waiting for frame 2
+        self._tail_expected = False  # a reply was abandoned: its frame 2 may still come
         self._last: Wrench | None = None
         self._last_fresh = 0.0
         self._seq = 0
@@ -353,9 +354,14 @@ class CanForceSensor:
             raise TransportError(f"CAN receive from {self.link} failed: {exc}") from exc
 
     def _discard_queued(self) -> None:
+        """Drop what is queued: the requests in flight are abandoned.  The rest of an
+        abandoned reply may still arrive (its first frame dropped here, its second one
+        sent after a stall of either side): until the next first frame, one second
+        frame on its own is that tail, not garbage."""
         while self._recv(0.0) is not None:
             pass
         self._first = None
+        self._tail_expected = True
 
     def _collect(self, deadline: float) -> tuple[int, Vec] | None:
         """Wait until ``deadline`` for a complete gauge reply, then take the newest queued."""
@@ -383,9 +389,14 @@ class CanForceSensor:
             if msg.dlc != 8:
                 raise ProtocolError(f"gauge frame 1 (id 0x{aid:03X}) has DLC {msg.dlc}, expected 8")
             self._first = bytes(msg.data)
+            self._tail_expected = False
             return None
         if aid == self._id_g1:
             if self._first is None:
+                if self._tail_expected:  # the end of a reply abandoned by _discard_queued
+                    self._tail_expected = False
+                    log.debug("sensor_abandoned_reply_tail", link=self.link)
+                    return None
                 raise ProtocolError(f"gauge frame 2 (id 0x{aid:03X}) arrived without frame 1")
             first, self._first = self._first, None
             return decode_gauges(first, bytes(msg.data))
