@@ -44,6 +44,7 @@ class FakeCommand(NamedTuple):
 
 
 _OPTIONAL = ("qd", "acceleration", "time", "deceleration", "code", "text", "reply")
+_KNOWN = frozenset(_OPTIONAL)
 
 
 class CommandLog:
@@ -62,9 +63,8 @@ class CommandLog:
         self._seq = 0
 
     def add(self, controller_time: float, kind: CommandKind, **fields: object) -> None:
-        unknown = set(fields) - set(_OPTIONAL)
-        if unknown:
-            raise TypeError(f"unknown command log fields: {sorted(unknown)}")
+        if not _KNOWN.issuperset(fields):
+            raise TypeError(f"unknown command log fields: {sorted(set(fields) - _KNOWN)}")
         self._ring.append((self._seq, controller_time, kind.value,
                            *(fields.get(name) for name in _OPTIONAL)))
         self._seq += 1

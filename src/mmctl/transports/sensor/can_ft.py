@@ -395,7 +395,6 @@ class CanForceSensor:
             if self._first is None:
                 if self._tail_expected:  # the end of a reply abandoned by _discard_queued
                     self._tail_expected = False
-                    log.debug("sensor_abandoned_reply_tail", link=self.link)
                     return None
                 raise ProtocolError(f"gauge frame 2 (id 0x{aid:03X}) arrived without frame 1")
             first, self._first = self._first, None
