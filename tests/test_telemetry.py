@@ -400,3 +400,19 @@ def test_base_frame_of_one_row_is_bit_identical_to_the_same_row_among_many() -> 
     assert np.allclose(base_frame(rows, tr.P)[5],
                        [c * (px - x) + s * (py - y), -s * (px - x) + c * (py - y), pz],
                        rtol=0, atol=1e-15)
+
+
+def test_the_scene_draws_p_des_where_the_plotted_series_has_it() -> None:
+    """The 3-D point and the full-rate series are the same base-frame position (one
+    conversion, batch.base_frame), bit for bit; synthetic p_des is (0.9, 0, 1) there."""
+    from mmctl.config import default_config
+    from mmctl.telemetry.batch import full_rate
+    from mmctl.telemetry.scene import SceneBuilder
+
+    scene = SceneBuilder(default_config().robot)
+    samples = list(synthetic_samples(40, start=3))
+    series = full_rate(rows_of(samples)).values[layout.EE_POSITION_DES.path]
+    for s, plotted in zip(samples, series, strict=True):
+        drawn = scene.frame(s).p_des
+        assert np.array_equal(drawn, plotted)
+        assert np.allclose(drawn, [0.9, 0.0, 1.0], atol=1e-12)

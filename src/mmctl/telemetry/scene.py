@@ -20,6 +20,8 @@ from mmctl.config.base import MecanumConfig
 from mmctl.config.robot import RobotConfig
 from mmctl.model import NA, RobotModel
 from mmctl.telemetry import layout
+from mmctl.telemetry import ring as tr
+from mmctl.telemetry.batch import base_frame
 from mmctl.telemetry.sample import TelemetrySample
 
 F64 = NDArray[np.float64]
@@ -86,8 +88,6 @@ class SceneBuilder:
         pts += [flange.translation, tool.translation]
         quat = pin.Quaternion(tool.rotation)
         x, y, yaw = (float(v) for v in s.base_pose[:3])
-        c, sn = math.cos(yaw), math.sin(yaw)
-        dx, dy = float(s.p_des[0]) - x, float(s.p_des[1]) - y  # world -> base frame
         f_h = np.asarray(s.f_h, dtype=float)
         v_d = np.asarray(s.v_d, dtype=float)
         return SceneFrame(
@@ -98,5 +98,5 @@ class SceneBuilder:
             handle_quaternion=np.array([quat.x, quat.y, quat.z, quat.w]),
             twist_vector=v_d[:3] * layout.TWIST_ARROW_SCALE,
             force_vector=f_h[:3] * layout.FORCE_ARROW_SCALE,
-            p_des=np.array([c * dx + sn * dy, -sn * dx + c * dy, float(s.p_des[2])]),
+            p_des=base_frame(tr.rows_of([s]), tr.P_DES)[0],  # as the plotted series
         )
