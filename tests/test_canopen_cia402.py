@@ -58,3 +58,20 @@ def test_object_dictionary_has_the_profile_objects() -> None:
         assert index in od
     assert od[ds.TARGET_VELOCITY].pdo_mappable
     assert od[0x1800][1].default == 0x8000_0183  # TPDO1 COB-ID, not valid until configured
+
+
+def test_fault_reaction_active_ignores_every_command_including_the_reset_edge() -> None:
+    for cw in (CW.FAULT_RESET, CW.DISABLE_VOLTAGE, CW.SHUTDOWN, CW.ENABLE_OPERATION):
+        assert ds.next_state(S.FAULT_REACTION_ACTIVE, cw, 0) is S.FAULT_REACTION_ACTIVE
+
+
+def test_object_dictionary_has_the_watchdog_and_option_code_objects_off_by_default() -> None:
+    od = ds.build_object_dictionary(2)
+    assert od[ds.CONSUMER_HEARTBEAT_TIME][1].default == 0  # no consumer heartbeat
+    assert od[ds.RPDO1_COMMUNICATION][ds.EVENT_TIMER_SUBINDEX].default == 0  # no deadline
+    assert od[ds.RPDO1_COMMUNICATION][0].default == 5
+    assert od[ds.ABORT_CONNECTION_OPTION].default == ds.ABORT_NO_ACTION
+    assert od[ds.SHUTDOWN_OPTION].default == ds.STOP_OPTION_COAST  # CiA 402's default
+    for index in (ds.QUICK_STOP_OPTION, ds.DISABLE_OPERATION_OPTION, ds.FAULT_REACTION_OPTION,
+                  ds.QUICK_STOP_DECELERATION):
+        assert index in od
