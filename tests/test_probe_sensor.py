@@ -6,12 +6,14 @@ import json
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mmctl.cli import main
 from mmctl.commands.probe_sensor import SIMULATED_WRENCH
+from mmctl.sim.fake_ft_can import FakeFtCanSensor
 from mmctl.sim.fake_rdt import FakeRdtServer
 from mmctl.sim.wrench_source import ConstantWrench
 
@@ -46,6 +48,23 @@ def test_can_nothing_answers(capsys: pytest.CaptureFixture[str]) -> None:
     assert len(lines) == 1
     assert lines[0].startswith("mmctl probe: error: no reply from the F/T sensor "
                                "virtual:test-probe-nobody@0x21")
+
+
+def test_can_missing_matrix_frame_is_one_line_naming_it(
+        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """A sensor that leaves out the middle frame (CAN id base|3) of its matrix-row
+    answer: the probe says which row and which frame, not "no reply"."""
+    cfg = tmp_path / "sensor.yaml"
+    cfg.write_text("sensor:\n  can:\n    connect_timeout: 1.0\n", encoding="utf-8")
+    with FakeFtCanSensor(ConstantWrench(W), channel="test-probe-matrix", base_id=0x22) as fake:
+        fake.matrix_opcodes = (0x2, 0x4)
+        rc = main(["probe", "sensor", "--transport", "can", "--channel", "test-probe-matrix",
+                   "--base-id", "0x22", "--config", str(cfg), *COMMON])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert err[0] == ("mmctl probe: error: calibration matrix row 0 (Fx) from the F/T sensor "
+                      "virtual:test-probe-matrix@0x22 is incomplete: no frame on CAN id 0x223 "
+                      "(c[0][2], c[0][3]) within 1000 ms (got 0x222, 0x224)")
 
 
 def test_can_simulate_refuses_a_real_interface(capsys: pytest.CaptureFixture[str]) -> None:

@@ -15,7 +15,14 @@ from hypothesis import strategies as st
 
 from mmctl.config import default_config
 from mmctl.errors import FaultCause, ProtocolError, SafetyFault, TransportError
-from mmctl.sim.fake_ft_can import FakeFtCanSensor
+from mmctl.sim.fake_ft_can import (
+    STATUS_BUS_ERROR,
+    STATUS_DAC_ADC_TOO_HIGH,
+    STATUS_DAC_ADC_TOO_LOW,
+    STATUS_SATURATION,
+    STATUS_WATCHDOG_RESET,
+    FakeFtCanSensor,
+)
 from mmctl.sim.wrench_source import ConstantWrench
 from mmctl.transports.sensor.can_ft import (
     CanForceSensor,
@@ -26,6 +33,7 @@ from mmctl.transports.sensor.can_ft import (
     decode_matrix_row,
     decode_units,
     frame_id,
+    status_bit_names,
 )
 
 _names = itertools.count()
@@ -79,10 +87,17 @@ def calibration_script(base: int, units: bytes = b"\x02\x03") -> tuple[list, lis
     b = base << 4
     requests = [(b | 0x8, b""), (b | 0x7, b"")] + [(b | 0x2, bytes((r,))) for r in range(6)]
     replies = [[(b | 0x8, units)], [(b | 0x7, struct.pack(">II", CPF, CPT))]]
-    for r in range(6):
-        row = MATRIX[r]
-        replies.append([(b | 0x2, struct.pack(">ff", row[k], row[k + 1])) for k in (0, 2, 4)])
+    replies += [matrix_frames(base, r) for r in range(6)]
     return requests, replies
+
+
+def matrix_frames(base: int, row: int, opcodes: tuple[int, ...] = (0x2, 0x3, 0x4),
+                  matrix: np.ndarray = MATRIX) -> list[tuple[int, bytes]]:
+    """ATI's answer to a matrix-row read: id base|0x2 = (c[r][0], c[r][1]), base|0x3 =
+    (c[r][2], c[r][3]), base|0x4 = (c[r][4], c[r][5]), big-endian float32; ``opcodes``
+    picks which of the three go on the bus, in that order."""
+    b, r = base << 4, matrix[row]
+    return [(b | op, struct.pack(">ff", r[2 * (op - 2)], r[2 * (op - 2) + 1])) for op in opcodes]
 
 
 def gauge_frames(base: int, status: int, sg: tuple[int, ...]) -> list[tuple[int, bytes]]:
@@ -130,6 +145,155 @@ def test_connect_and_read_exact_bytes_on_the_wire() -> None:
     expected = MATRIX @ np.array(sg2, dtype=float) / scale
     np.testing.assert_allclose(w.as_array(), expected, rtol=1e-12, atol=1e-12)
     assert w.sequence == 2 and w.status == 0
+
+
+def connect_only(ch: str, base: int, script: list,
+                 connect_timeout: float = 5.0) -> tuple[ScriptedPeer, CanForceSensor]:
+    """A started scripted peer and a client for it with ``connect_timeout`` [s]."""
+    peer = ScriptedPeer(ch, script)
+    peer.start()
+    sensor = CanForceSensor(can_cfg(ch, base_id=base, timeout=2.0,
+                                    connect_timeout=connect_timeout), stale_timeout=10.0)
+    return peer, sensor
+
+
+def test_matrix_row_frames_are_read_in_any_arrival_order() -> None:
+    """ATI answers a row read on three ids (base|2, |3, |4); the client places each
+    frame by its id, whatever order the three arrive in."""
+    ch, base = channel(), 0x24
+    requests, replies = calibration_script(base)
+    orders = [(0x4, 0x3, 0x2), (0x3, 0x2, 0x4), (0x2, 0x4, 0x3),
+              (0x4, 0x2, 0x3), (0x3, 0x4, 0x2), (0x2, 0x3, 0x4)]
+    replies[2:8] = [matrix_frames(base, r, order) for r, order in enumerate(orders)]
+    gauge_req = (base << 4 | 0x0, b"")
+    peer, sensor = connect_only(ch, base, replies + [gauge_frames(base, 0, (1,) * 6), []])
+    try:
+        sensor.connect()
+    finally:
+        sensor.close()
+        peer.finish()
+    assert peer.seen == requests + [gauge_req, gauge_req]
+    np.testing.assert_array_equal(sensor.calibration, MATRIX)
+
+
+@pytest.mark.parametrize(("missing", "coefficients"),
+                         [(0x2, "c[4][0], c[4][1]"), (0x3, "c[4][2], c[4][3]"),
+                          (0x4, "c[4][4], c[4][5]")])
+def test_a_missing_matrix_frame_is_named(missing: int, coefficients: str) -> None:
+    """Row 4 (Ty) comes with one of its three frames missing: the error names the row,
+    the missing frame's CAN id and coefficients, and the frames that did come."""
+    ch, base = channel(), 0x25
+    requests, replies = calibration_script(base)
+    present = tuple(op for op in (0x2, 0x3, 0x4) if op != missing)
+    replies[2 + 4] = matrix_frames(base, 4, present)
+    peer, sensor = connect_only(ch, base, replies[:7], connect_timeout=1.0)
+    try:
+        with pytest.raises(TransportError) as info:
+            sensor.connect()
+    finally:
+        sensor.close()
+        peer.finish()
+    assert peer.seen == requests[:7]
+    msg = str(info.value)
+    fid = (base << 4) | missing
+    assert (f"calibration matrix row 4 (Ty) from the F/T sensor virtual:{ch}@0x25 is "
+            f"incomplete: no frame on CAN id 0x{fid:03X} ({coefficients})") in msg, msg
+    got = ", ".join(f"0x{(base << 4) | op:03X}" for op in present)
+    assert f"within 1000 ms (got {got})" in msg, msg
+
+
+def test_stray_frames_during_a_matrix_read_are_ignored() -> None:
+    """Another master's row request, other opcodes' replies, a gauge frame and an exact
+    repeat of a matrix frame come between the three frames of a row: all ignored."""
+    ch, base = channel(), 0x26
+    b = base << 4
+    requests, replies = calibration_script(base)
+    f2, f3, f4 = matrix_frames(base, 1)
+    replies[3] = [(b | 0x2, b"\x05"), f3, (b | 0x5, b"SN012345"), (b | 0x0, bytes(8)), f3,
+                  (b | 0x9, b"\x01\x02"), f2, f4]
+    gauge_req = (b | 0x0, b"")
+    peer, sensor = connect_only(ch, base, replies + [gauge_frames(base, 0, (1,) * 6), []])
+    try:
+        sensor.connect()
+    finally:
+        sensor.close()
+        peer.finish()
+    assert peer.seen == requests + [gauge_req, gauge_req]
+    np.testing.assert_array_equal(sensor.calibration, MATRIX)
+
+
+@pytest.mark.parametrize(
+    ("bad", "match"),
+    [((0x3, struct.pack(">ff", 9.0, 9.0)), r"two different frames on CAN id 0x273"),
+     ((0x4, bytes(4)), r"matrix frame on CAN id 0x274 has 4 data bytes, expected 8"),
+     ((0x2, bytes(7)), r"matrix frame on CAN id 0x272 has 7 data bytes, expected 8")],
+)
+def test_malformed_matrix_frames_are_a_protocol_error(bad: tuple[int, bytes], match: str) -> None:
+    ch, base = channel(), 0x27
+    b = base << 4
+    _, replies = calibration_script(base)
+    f2, f3, f4 = matrix_frames(base, 0)
+    replies[2] = [f2, f3, (b | bad[0], bad[1]), f4] if bad[0] == 0x3 else [(b | bad[0], bad[1])]
+    peer, sensor = connect_only(ch, base, replies[:3])
+    try:
+        with pytest.raises(ProtocolError, match=match):
+            sensor.connect()
+    finally:
+        sensor.close()
+        peer.finish()
+
+
+def test_fake_answers_a_matrix_row_in_atis_framing() -> None:
+    """The simulated sensor, asked for row 3, puts exactly ATI's three frames on the bus."""
+    ch, base = channel(), 0x2A
+    with FakeFtCanSensor(ConstantWrench([0] * 6), channel=ch, base_id=base, calibration=MATRIX):
+        bus = can.Bus(interface="virtual", channel=ch)
+        try:
+            bus.send(can.Message(arbitration_id=base << 4 | 0x2, data=b"\x03",
+                                 is_extended_id=False))
+            got = [bus.recv(timeout=10.0) for _ in range(3)]
+        finally:
+            bus.shutdown()
+    assert [(m.arbitration_id, bytes(m.data), m.is_extended_id) for m in got if m] == [
+        (aid, data, False) for aid, data in matrix_frames(base, 3)]
+
+
+def fake_gauge_reply(fake: FakeFtCanSensor, ch: str) -> tuple[bytes, bytes]:
+    """One gauge read from ``fake`` with a raw bus: the two reply frames' data."""
+    bus = can.Bus(interface="virtual", channel=ch)
+    try:
+        bus.send(can.Message(arbitration_id=fake.base_id << 4, data=b"", is_extended_id=False))
+        got = [bus.recv(timeout=10.0) for _ in range(2)]
+    finally:
+        bus.shutdown()
+    assert all(m is not None for m in got)
+    assert [m.arbitration_id for m in got] == [fake.base_id << 4, fake.base_id << 4 | 1]
+    return bytes(got[0].data), bytes(got[1].data)
+
+
+@pytest.mark.parametrize(
+    ("bit", "word"),
+    [(STATUS_WATCHDOG_RESET, 0x8001), (STATUS_DAC_ADC_TOO_HIGH, 0x8002),
+     (STATUS_DAC_ADC_TOO_LOW, 0x8004), (STATUS_BUS_ERROR, 0xC000),
+     (STATUS_DAC_ADC_TOO_HIGH | STATUS_BUS_ERROR, 0xC002), (0, 0x0000)],
+)
+def test_fake_sends_status_bits_as_the_sensor_does(bit: int, word: int) -> None:
+    """Each status bit goes out as set, with bit 15 (any error) whenever another is set."""
+    ch = channel()
+    with FakeFtCanSensor(ConstantWrench([1, 2, 3, 0.1, 0.2, 0.3]), channel=ch) as fake:
+        fake.status = bit
+        first, _ = fake_gauge_reply(fake, ch)
+    assert first[:2] == struct.pack(">H", word)
+
+
+def test_fake_saturation_puts_a_gauge_on_the_rail_not_a_status_bit() -> None:
+    ch = channel()
+    with FakeFtCanSensor(ConstantWrench([1, 2, 3, 0.1, 0.2, 0.3]), channel=ch) as fake:
+        fake.status = STATUS_SATURATION
+        first, second = fake_gauge_reply(fake, ch)
+    status, g = decode_gauges(first, second)
+    assert status == 0
+    assert g.max() == 32767 or g.min() == -32768
 
 
 def test_caller_paced_requests_go_out_only_when_asked() -> None:
@@ -268,39 +432,54 @@ def test_decode_small_replies() -> None:
 
 
 @pytest.mark.parametrize(
-    ("status", "gauges", "cause"),
+    ("status", "bits"),
     [
-        (0x4000, (0,) * 6, FaultCause.SENSOR_STATUS),
-        (0x8000, (0,) * 6, FaultCause.SENSOR_STATUS),
-        (0x0002, (0,) * 6, FaultCause.SENSOR_SATURATION),
-        (0x0000, (0, 0, 32767, 0, 0, 0), FaultCause.SENSOR_SATURATION),
-        (0x0000, (0, 0, 0, 0, -32768, 0), FaultCause.SENSOR_SATURATION),
+        (0x0001, ("watchdog_reset",)),
+        (0x8002, ("dac_adc_check_too_high", "any_error")),
+        (0x8004, ("dac_adc_check_too_low", "any_error")),
+        (0xC000, ("can_bus_error", "any_error")),
+        (0x8000, ("any_error",)),
+        (0x99F8, ("analog_ground_out_of_range", "supply_voltage_too_high",
+                  "supply_voltage_too_low", "bad_active_calibration", "eeprom_failure",
+                  "configuration_invalid", "temperature_too_high", "temperature_too_low",
+                  "any_error")),
+        (0x2600, ("reserved_bit9", "reserved_bit10", "reserved_bit13")),
     ],
 )
-def test_status_word_and_rails(status: int, gauges: tuple[int, ...], cause: FaultCause) -> None:
+def test_status_bits_are_named_as_ati_defines_them(status: int, bits: tuple[str, ...]) -> None:
+    """Any set bit is a status fault (never "saturation"), each set bit named, bit 0 first."""
+    assert status_bit_names(status) == bits
     with pytest.raises(SafetyFault) as info:
-        check_status(status, np.array(gauges, dtype=float), 0x0006)
-    assert info.value.cause is cause
-    if status == 0x4000:
-        assert info.value.details["bus_error"] is True
+        check_status(status, np.zeros(6))
+    assert info.value.cause is FaultCause.SENSOR_STATUS
+    assert info.value.details["status"] == f"0x{status:04X}"
+    assert info.value.details["bits"] == list(bits)
+
+
+@pytest.mark.parametrize(("gauges", "at_rail"), [((0, 0, 32767, 0, 0, 0), ["sg2"]),
+                                                 ((-32768, 0, 0, 0, 32767, 0), ["sg0", "sg4"])])
+def test_a_gauge_at_the_int16_rail_is_saturation(gauges: tuple[int, ...],
+                                                 at_rail: list[str]) -> None:
+    with pytest.raises(SafetyFault) as info:
+        check_status(0, np.array(gauges, dtype=float))
+    assert info.value.cause is FaultCause.SENSOR_SATURATION
+    assert info.value.details["gauges"] == at_rail
 
 
 def test_healthy_status_passes() -> None:
-    check_status(0, np.array([0, 1, -1, 32766, -32767, 5], dtype=float), 0x0006)
+    check_status(0, np.array([0, 1, -1, 32766, -32767, 5], dtype=float))
 
 
 _frame = st.binary(min_size=0, max_size=8)
 
 
 @settings(max_examples=300, deadline=None)
-@given(first=_frame, second=_frame, status_mask=st.integers(0, 0xFFFF))
-def test_fuzz_gauge_decoding_never_nan_never_foreign_exception(
-    first: bytes, second: bytes, status_mask: int
-) -> None:
+@given(first=_frame, second=_frame)
+def test_fuzz_gauge_decoding_never_nan_never_foreign_exception(first: bytes, second: bytes) -> None:
     conv = conversion_matrix(MATRIX, CPF, CPT)
     try:
         status, g = decode_gauges(first, second)
-        check_status(status, g, status_mask)
+        check_status(status, g)
     except (ProtocolError, SafetyFault):
         return
     w = conv @ g

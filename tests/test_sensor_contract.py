@@ -17,7 +17,14 @@ import pytest
 
 from mmctl.config import default_config
 from mmctl.errors import FaultCause, ProtocolError, SafetyFault, TransportError
-from mmctl.sim.fake_ft_can import STATUS_BUS_ERROR, STATUS_SATURATION, FakeFtCanSensor
+from mmctl.sim.fake_ft_can import (
+    STATUS_BUS_ERROR,
+    STATUS_DAC_ADC_TOO_HIGH,
+    STATUS_DAC_ADC_TOO_LOW,
+    STATUS_SATURATION,
+    STATUS_WATCHDOG_RESET,
+    FakeFtCanSensor,
+)
 from mmctl.sim.fake_rdt import STATUS_ERROR, FakeRdtServer
 from mmctl.sim.fake_rdt import STATUS_SATURATION as RDT_SATURATION
 from mmctl.sim.wrench_source import CallableWrench
@@ -163,6 +170,31 @@ def test_status_bits_fault(rig: Rig, kind: str, cause: FaultCause) -> None:
         assert info.value.cause is cause
         rig.fake.status = 0  # the fault is a condition, not a latch: healthy again
         fresh_samples(sensor, 2)
+
+
+@pytest.mark.parametrize(
+    ("bit", "names"),
+    [(STATUS_DAC_ADC_TOO_HIGH, ["dac_adc_check_too_high", "any_error"]),
+     (STATUS_DAC_ADC_TOO_LOW, ["dac_adc_check_too_low", "any_error"]),
+     (STATUS_WATCHDOG_RESET, ["watchdog_reset", "any_error"]),
+     (STATUS_BUS_ERROR, ["can_bus_error", "any_error"])],
+)
+def test_can_status_bits_are_a_status_fault_naming_each_bit(bit: int, names: list[str]) -> None:
+    """The Axia80's DAC/ADC self-check, watchdog reset and bus error (ATI's status word)
+    reach the daemon as SENSOR_STATUS with each set bit named, never as saturation."""
+    rig = Rig("can")
+    try:
+        with rig.sensor() as sensor:
+            fresh_samples(sensor, 2)
+            rig.fake.status = bit
+            with pytest.raises(SafetyFault) as info:
+                read_until_raises(sensor)
+            assert info.value.cause is FaultCause.SENSOR_STATUS
+            assert info.value.details["bits"] == names
+            rig.fake.status = 0
+            fresh_samples(sensor, 2)
+    finally:
+        rig.fake.stop()
 
 
 def test_garbage_is_a_protocol_error(rig: Rig) -> None:

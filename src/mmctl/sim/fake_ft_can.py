@@ -1,18 +1,31 @@
 """A simulated ATI F/T sensor answering the Net F/T CAN layout on a python-can bus.
 
+Reference: ATI Industrial Automation, *Net F/T Installation and Operation Manual*, document
+9620-05-NET FT, section "CAN interface" (see ``docs/sensor-can.md``).
+
 It runs as a thread with its *own* bus object on the client's channel (python-can's
 ``virtual`` interface connects every bus opened on the same channel name in one process;
 a bus never receives its own frames).  It answers exactly the requests documented in
 :mod:`mmctl.transports.sensor.can_ft` — gauges (0x0), matrix rows (0x2), counts per unit
 (0x7), unit codes (0x8) — encoding with its own code, so the tests check the client
-against an independent implementation.  The calibration matrix is deliberately not the
-identity, so a client that ignores it reads wrong values.
+against an independent implementation.  A matrix row ``r`` is answered as ATI frames it:
+three frames, id base|0x2 = (c[r][0], c[r][1]), base|0x3 = (c[r][2], c[r][3]), base|0x4 =
+(c[r][4], c[r][5]), two big-endian float32 each.  The calibration matrix is deliberately
+not the identity, so a client that ignores it reads wrong values.
 
 Gauges for a wrench ``w``: ``sg = round(C^-1 (w * counts_per_unit))``, clipped to int16.
 
-Fault injection (plain attributes, read by the thread at each request): ``status``
-(status word sent with every sample, e.g. ``STATUS_BUS_ERROR``), ``silent`` (answer
-nothing), ``garbage`` (answer gauge requests with a 3-byte frame on the reply id).
+Fault injection (plain attributes, read by the thread at each request):
+
+* ``status``: ATI status bits sent with every sample (``STATUS_WATCHDOG_RESET``,
+  ``STATUS_DAC_ADC_TOO_HIGH``, ``STATUS_DAC_ADC_TOO_LOW``, ``STATUS_BUS_ERROR``, any other
+  bit 0..14); like the sensor, bit 15 (``STATUS_ANY_ERROR``) is set with any of them.
+  ``STATUS_SATURATION`` is not a status bit (ATI has none for it): it makes the sensor
+  saturate, i.e. the gauges go to the int16 rail, as does ``saturate = True``;
+* ``silent`` (answer nothing), ``garbage`` (answer gauge requests with a 3-byte frame on
+  the reply id);
+* ``matrix_opcodes``: which frames of a matrix-row answer go out, in that order (default
+  ``(0x2, 0x3, 0x4)``; e.g. ``(0x4, 0x2)`` reorders and leaves out base|0x3).
 
 Usage::
 
@@ -42,8 +55,15 @@ if TYPE_CHECKING:  # typing.Self is 3.11+; the package supports 3.10
 
 log = structlog.get_logger("mmctl.sim.fake_ft_can")
 
+# ATI's status word (uint16, first two bytes of gauge frame 1)
+STATUS_WATCHDOG_RESET = 0x0001
+STATUS_DAC_ADC_TOO_HIGH = 0x0002  # DAC/ADC check result too high
+STATUS_DAC_ADC_TOO_LOW = 0x0004  # DAC/ADC check result too low
 STATUS_BUS_ERROR = 0x4000
-STATUS_SATURATION = 0x0002
+STATUS_ANY_ERROR = 0x8000
+#: Not on the wire: in ``status`` it makes the simulated gauges saturate (int16 rail).
+STATUS_SATURATION = 0x10000
+RAIL = 32767
 
 #: A plausible, well-conditioned, non-identity calibration (gauges -> counts).
 DEFAULT_CALIBRATION: tuple[tuple[float, ...], ...] = (
@@ -90,6 +110,8 @@ class FakeFtCanSensor:
         self._cpu = np.array((counts_per_force,) * 3 + (counts_per_torque,) * 3, dtype=np.float64)
         self.units = units
         self.status = 0
+        self.saturate = False
+        self.matrix_opcodes: tuple[int, ...] = (0x2, 0x3, 0x4)
         self.silent = False
         self.garbage = False
         self.requests = 0
@@ -179,12 +201,19 @@ class FakeFtCanSensor:
                 self._send(bus, 0x0, b"\xde\xad\xbe")
                 return
             g = self.gauges_for(self.source.wrench(time.monotonic() - self._t0)).astype(int)
-            self._send(bus, 0x0, struct.pack(">Hhhh", self.status & 0xFFFF, g[0], g[2], g[4]))
+            status = self.status
+            if self.saturate or status & STATUS_SATURATION:
+                g[2] = RAIL  # Fz's main gauge over range
+            word = status & 0xFFFF
+            if word & ~STATUS_ANY_ERROR:
+                word |= STATUS_ANY_ERROR
+            self._send(bus, 0x0, struct.pack(">Hhhh", word, g[0], g[2], g[4]))
             self._send(bus, 0x1, struct.pack(">hhh", g[1], g[3], g[5]))
         elif opcode == 0x2 and len(data) == 1 and data[0] < 6:
             row = self.calibration[data[0]]
-            for k in range(0, 6, 2):
-                self._send(bus, 0x2, struct.pack(">ff", row[k], row[k + 1]))
+            for op in self.matrix_opcodes:  # base|2: c[r][0..1], base|3: [2..3], base|4: [4..5]
+                k = 2 * (op - 0x2)
+                self._send(bus, op, struct.pack(">ff", row[k], row[k + 1]))
         elif opcode == 0x7 and not data:
             self._send(bus, 0x7, struct.pack(">II", *self.counts))
         elif opcode == 0x8 and not data:

@@ -1,5 +1,10 @@
 """ATI force/torque sensor on CAN (the Net F/T CAN layout), over any python-can interface.
 
+Reference: ATI Industrial Automation, *Net F/T Installation and Operation Manual*, document
+9620-05-NET FT, section "CAN interface" (the same layout as ATI's Net CAN OEM board,
+document 9610-05-1030).  See ``docs/sensor-can.md`` for what was taken from it and how it
+was checked.
+
 Wire protocol (what this client sends and expects; all frames 11-bit standard ids,
 ``id = (base_id << 4) | opcode``, default base 0x20 -> ids 0x200..0x20F; integers and
 floats big-endian, as ATI's CAN layout sends them):
@@ -7,19 +12,28 @@ floats big-endian, as ATI's CAN layout sends them):
 ============  =====================================  ==========================================
 opcode        request (client -> sensor)             reply (sensor -> client)
 ============  =====================================  ==========================================
-0x0 gauges    id base|0x0, DLC 0                     id base|0x0, DLC 8: int16 status, int16 sg0,
-                                                     int16 sg2, int16 sg4; then id base|0x1,
-                                                     DLC 6: int16 sg1, sg3, sg5 (DLC 7-8
-                                                     accepted, extra bytes ignored)
-0x2 matrix    id base|0x2, DLC 1: uint8 row          three frames id base|0x2, DLC 8, each two
-              (0 Fx, 1 Fy, 2 Fz, 3 Tx, 4 Ty, 5 Tz)   float32: (c[r][0], c[r][1]), (c[r][2],
-                                                     c[r][3]), (c[r][4], c[r][5])
+0x0 gauges    id base|0x0, DLC 0                     id base|0x0, DLC 8: uint16 status, int16
+                                                     sg0, int16 sg2, int16 sg4; then id
+                                                     base|0x1, DLC 6: int16 sg1, sg3, sg5 (DLC
+                                                     7-8 accepted, extra bytes ignored)
+0x2 matrix    id base|0x2, DLC 1: uint8 row          three frames, DLC 8, two float32 each:
+              (0 Fx, 1 Fy, 2 Fz, 3 Tx, 4 Ty, 5 Tz)   id base|0x2 = (c[r][0], c[r][1]), id
+                                                     base|0x3 = (c[r][2], c[r][3]), id
+                                                     base|0x4 = (c[r][4], c[r][5])
 0x7 counts    id base|0x7, DLC 0                     id base|0x7, DLC 8: uint32 counts per force
                                                      unit, uint32 counts per torque unit
 0x8 units     id base|0x8, DLC 0                     id base|0x8, DLC 2: uint8 force unit,
                                                      uint8 torque unit (ATI codes: 2 = N,
                                                      3 = N m; anything else is refused)
 ============  =====================================  ==========================================
+
+A matrix row is placed frame by frame by CAN id, so the three frames may arrive in any
+order.  While a row is read, frames that are not its answer are ignored: requests (another
+master's row read: id base|0x2, DLC 1), other opcodes' frames, and an exact repeat of a
+frame already received.  A second, *different* frame on the same id, or a matrix frame
+that is not 8 bytes, is a :class:`~mmctl.errors.ProtocolError`; a row with a frame still
+missing after ``sensor.can.connect_timeout`` is a :class:`~mmctl.errors.TransportError`
+naming the row, the missing frame's CAN id and coefficients, and the frames that came.
 
 Conversion: ``w = diag(1/cpf, 1/cpf, 1/cpf, 1/cpt, 1/cpt, 1/cpt) C sg`` with ``C`` the 6x6
 calibration matrix (row r = output axis), ``sg`` the six gauges.  The sensor has no bias
@@ -28,11 +42,16 @@ of its own on this link: :meth:`CanForceSensor.tare` is a software bias (mean of
 length are another master's requests and are ignored; frames of our reply ids with any
 other unexpected length are a :class:`~mmctl.errors.ProtocolError`.
 
-Status word (uint16, 0 = healthy): 0x4000 is ATI's CAN bus error; the bits in
-``sensor.can.status_saturation_mask`` (default 0x0006, our reading of ATI's "ADC too
-high / too low" bits — set it from your unit's manual) and any gauge at the int16 rail
-(-32768 or 32767) raise ``SafetyFault(SENSOR_SATURATION)``; any other set bit raises
-``SafetyFault(SENSOR_STATUS)``.
+Status word (uint16, 0 = healthy), bits as ATI defines them (:data:`STATUS_BITS`): 0
+watchdog reset, 1 DAC/ADC check result too high, 2 DAC/ADC check result too low, 3
+artificial analog ground out of range, 4/5 power supply too high/low, 6 bad active
+calibration, 7 EEPROM failure, 8 configuration invalid, 11/12 sensor temperature too
+high/low, 14 CAN bus error, 15 any error (9, 10 and 13 reserved).  Any set bit raises
+``SafetyFault(SENSOR_STATUS, status="0x8002", bits=["dac_adc_check_too_high",
+"any_error"])``, each set bit named.  No status bit means saturation: a gauge at the int16
+rail (-32768 or 32767) raises ``SafetyFault(SENSOR_SATURATION, gauges=["sg2"])``.
+``sensor.can.status_saturation_mask`` is not used (ATI's CAN status word has no
+saturation bit).
 
 Timing (why a read is cheap): reads are *pipelined*.  After a reply is decoded, the next
 request goes out at once — or, once the caller uses :meth:`CanForceSensor.request_next`
@@ -75,7 +94,26 @@ OP_MATRIX = 0x2
 OP_COUNTS = 0x7
 OP_UNITS = 0x8
 
+#: ATI's status-word bits (bit -> name used in fault details); 9, 10 and 13 are reserved.
+STATUS_BITS: dict[int, str] = {
+    0: "watchdog_reset",
+    1: "dac_adc_check_too_high",
+    2: "dac_adc_check_too_low",
+    3: "analog_ground_out_of_range",
+    4: "supply_voltage_too_high",
+    5: "supply_voltage_too_low",
+    6: "bad_active_calibration",
+    7: "eeprom_failure",
+    8: "configuration_invalid",
+    11: "temperature_too_high",
+    12: "temperature_too_low",
+    14: "can_bus_error",
+    15: "any_error",
+}
 STATUS_BUS_ERROR = 0x4000
+STATUS_ANY_ERROR = 0x8000
+MATRIX_OPCODES = (0x2, 0x3, 0x4)  # the three frames of a matrix-row answer
+AXES = ("Fx", "Fy", "Fz", "Tx", "Ty", "Tz")
 UNIT_NEWTON = 2
 UNIT_NEWTON_METRE = 3
 GAUGE_RAILS = (-32768, 32767)
@@ -104,7 +142,8 @@ def decode_gauges(first: bytes, second: bytes) -> tuple[int, Vec]:
 
 
 def decode_matrix_row(frames: Sequence[bytes]) -> tuple[float, ...]:
-    """The three frames answering a matrix-row request -> the row's 6 coefficients."""
+    """The three frames answering a matrix-row request (ids base|0x2, base|0x3, base|0x4,
+    in that order) -> the row's 6 coefficients c[r][0..5]."""
     if len(frames) != 3 or any(len(f) != 8 for f in frames):
         lengths = [len(f) for f in frames]
         raise ProtocolError(f"a matrix row is 3 frames of 8 bytes, got lengths {lengths}")
@@ -146,14 +185,21 @@ def conversion_matrix(calibration: Sequence[Sequence[float]], cpf: float, cpt: f
     return c / scale[:, None]
 
 
-def check_status(status: int, gauges: Vec, saturation_mask: int) -> None:
-    """Raise SafetyFault(SENSOR_SATURATION / SENSOR_STATUS) if the sample is not healthy."""
-    if status & saturation_mask or gauges.min() <= GAUGE_RAILS[0] or gauges.max() >= GAUGE_RAILS[1]:
-        raise SafetyFault(FaultCause.SENSOR_SATURATION, status=hex(status))
+def status_bit_names(status: int) -> tuple[str, ...]:
+    """The names of the set bits of a status word, bit 0 first (``reserved_bitN`` if
+    ATI defines no meaning for bit N)."""
+    return tuple(STATUS_BITS.get(b, f"reserved_bit{b}") for b in range(16) if status >> b & 1)
+
+
+def check_status(status: int, gauges: Vec) -> None:
+    """Raise SafetyFault(SENSOR_STATUS / SENSOR_SATURATION) if the sample is not healthy."""
     if status:
-        raise SafetyFault(
-            FaultCause.SENSOR_STATUS, status=hex(status), bus_error=bool(status & STATUS_BUS_ERROR)
-        )
+        raise SafetyFault(FaultCause.SENSOR_STATUS, status=f"0x{status:04X}",
+                          bits=list(status_bit_names(status)))
+    low, high = GAUGE_RAILS
+    if gauges.min() <= low or gauges.max() >= high:
+        at_rail = [f"sg{i}" for i, g in enumerate(gauges) if g <= low or g >= high]
+        raise SafetyFault(FaultCause.SENSOR_SATURATION, gauges=at_rail)
 
 
 class CanForceSensor:
@@ -169,7 +215,6 @@ class CanForceSensor:
         self._stale = stale_timeout
         self._tare_n = tare_samples
         self._timeout = cfg.timeout
-        self._sat_mask = cfg.status_saturation_mask
         self._id_g0 = frame_id(cfg.base_id, OP_GAUGES)
         self._id_g1 = frame_id(cfg.base_id, OP_GAUGES_2)
         self._request = can.Message(arbitration_id=self._id_g0, data=b"", is_extended_id=False)
@@ -219,7 +264,7 @@ class CanForceSensor:
         try:
             decode_units(self._transact(OP_UNITS, b"", 1)[0])
             cpf, cpt = decode_counts(self._transact(OP_COUNTS, b"", 1)[0])
-            rows = [decode_matrix_row(self._transact(OP_MATRIX, bytes((r,)), 3)) for r in range(6)]
+            rows = [decode_matrix_row(self._read_matrix_row(r)) for r in range(6)]
             self._counts = (cpf, cpt)
             self._calibration = np.array(rows, dtype=np.float64)
             self._conv = conversion_matrix(rows, cpf, cpt)
@@ -319,7 +364,7 @@ class CanForceSensor:
             self._pending = None  # answered; request_next() sends the next one
         else:
             self._send_request(t)  # pipeline: the sensor answers while the cycle computes
-        check_status(status, gauges, self._sat_mask)
+        check_status(status, gauges)
         w = self._conv @ gauges - self._bias
         self._seq += 1
         wrench = Wrench(w[:3], w[3:], t, self._seq, status)
@@ -400,6 +445,50 @@ class CanForceSensor:
             first, self._first = self._first, None
             return decode_gauges(first, bytes(msg.data))
         return None  # late calibration replies, other opcodes
+
+    def _read_matrix_row(self, row: int) -> list[bytes]:
+        """Ask for calibration row ``row``; its three frames (ids base|2, |3, |4, in any
+        order) in id order.  See the module doc for what is ignored or refused."""
+        base = self._cfg.base_id
+        ids = [frame_id(base, op) for op in MATRIX_OPCODES]
+        timeout = self._cfg.connect_timeout
+        self._discard_queued()
+        self._send(can.Message(arbitration_id=ids[0], data=bytes((row,)), is_extended_id=False))
+        frames: dict[int, bytes] = {}
+        deadline = time.monotonic() + timeout
+        while len(frames) < len(ids):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0.0:
+                break
+            msg = self._recv(remaining)
+            if msg is None or msg.arbitration_id not in ids or msg.is_extended_id:
+                continue  # timeout slice, other opcodes
+            aid, data = msg.arbitration_id, bytes(msg.data)
+            if aid == ids[0] and len(data) == 1:
+                continue  # a row request (another master's)
+            if len(data) != 8:
+                raise ProtocolError(f"matrix frame on CAN id 0x{aid:03X} has {len(data)} data "
+                                    f"bytes, expected 8 (row {row}, sensor {self.link})")
+            if aid in frames and frames[aid] != data:
+                raise ProtocolError(f"two different frames on CAN id 0x{aid:03X} answering "
+                                    f"matrix row {row} from {self.link}: "
+                                    f"{frames[aid].hex()} then {data.hex()}")
+            frames[aid] = data
+        if not frames:
+            raise TransportError(
+                f"no reply from the F/T sensor {self.link} to opcode 0x{OP_MATRIX:X} "
+                f"(CAN id 0x{ids[0]:03X}, matrix row {row}) within {timeout * 1e3:.0f} ms"
+            )
+        if len(frames) < len(ids):
+            missing = ", ".join(f"0x{fid:03X} (c[{row}][{2 * k}], c[{row}][{2 * k + 1}])"
+                                for k, fid in enumerate(ids) if fid not in frames)
+            got = ", ".join(f"0x{fid:03X}" for fid in ids if fid in frames)
+            raise TransportError(
+                f"calibration matrix row {row} ({AXES[row]}) from the F/T sensor {self.link} "
+                f"is incomplete: no frame on CAN id {missing} within {timeout * 1e3:.0f} ms "
+                f"(got {got})"
+            )
+        return [frames[fid] for fid in ids]
 
     def _transact(self, opcode: int, payload: bytes, n_replies: int) -> list[bytes]:
         """Request/response used at connect; replies are the frames on the same id."""
