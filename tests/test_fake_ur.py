@@ -26,6 +26,7 @@ from mmctl.sim.fake_ur.program import (
     RtdeControlProgram,
     ScriptReceiver,
     register_offset,
+    watchdog_actions,
 )
 from mmctl.sim.fake_ur.rtde_session import RtdeSession
 from mmctl.sim.fake_ur.rtde_types import HEADER, OUTPUT_TYPES, MsgType, frame
@@ -292,6 +293,97 @@ def test_program_refused_in_a_safety_stop_or_local_control() -> None:
     texts = [e.text for e in model.log.since(0)]
     assert texts == ["rejected: ROBOT_EMERGENCY_STOP (rtde_control)",
                      "rejected: local control (rtde_control)"]
+
+
+# What ur_rtde 1.6.5's control script does for setWatchdog (command 35), verbatim.
+UR_RTDE_SET_WATCHDOG = """def rtde_control():
+    global reg_offset_int = # int register offset
+0
+    while True:
+        cmd = read_input_integer_reg(0)
+        if cmd == 35:
+            watchdog_min_frequency = read_input_float_reg(0)
+            if reg_offset_int == 0:
+                rtde_set_watchdog("input_int_register_0", watchdog_min_frequency, "stop")
+            elif reg_offset_int == 24:
+                rtde_set_watchdog("input_int_register_24", watchdog_min_frequency, "stop")
+            else:
+                rtde_set_watchdog("input_int_register_0", watchdog_min_frequency, "stop")
+            end
+        end
+    end
+end
+"""
+
+
+def _set_watchdog(model: ControllerModel, frequency: float) -> None:
+    """What ur_rtde's setWatchdog does: command 35 with the frequency, then clear it."""
+    model.regs.in_int[0], model.regs.in_double[0] = 35, frequency
+    model.input_written(0)
+    model.step()
+    model.regs.in_int[0] = 0
+    model.input_written(0)
+    model.step()
+
+
+def test_watchdog_actions_are_read_from_the_uploaded_script() -> None:
+    assert watchdog_actions(UR_RTDE_SET_WATCHDOG) == {0: "stop", 24: "stop"}
+    assert watchdog_actions("def p():\n  sync()\nend\n") == {}
+
+
+def test_rtde_watchdog_stops_the_program_and_the_arm_when_the_input_goes_quiet() -> None:
+    model = ControllerModel(Q0, CommandLog())
+    model.start_program("rtde_control", UR_RTDE_SET_WATCHDOG)
+    _set_watchdog(model, 10.0)  # 100 ms without an update of input_int_register_0: stop
+    model.regs.in_int[0] = 9
+    model.regs.in_double[:8] = [0.5, 0, 0, 0, 0, 0, 40.0, DT]
+    for _ in range(200):  # 0.4 s of speedJ, one package per period: updates in time
+        model.input_written(0)
+        model.step()
+    assert model.runtime_state == RuntimeState.PLAYING
+    assert model.plant.qd[0] == pytest.approx(0.5)
+    for _ in range(50):  # 100 ms of silence: not yet late
+        model.step()
+    assert model.runtime_state == RuntimeState.PLAYING
+    model.step()  # one more period: late
+    assert model.runtime_state == RuntimeState.STOPPED
+    assert model.plant.motion is Motion.STOPPING
+    for _ in range(100):
+        model.step()
+    assert model.plant.qd == [0.0] * 6
+    texts = [e.text or "" for e in model.log.since(0)]
+    assert any(t.startswith("stopped (rtde watchdog: input_int_register_0 not updated")
+               for t in texts), texts
+
+
+def test_rtde_watchdog_is_fed_by_any_package_with_the_register_and_ends_with_the_program(
+        ) -> None:
+    model = ControllerModel(Q0, CommandLog())
+    model.start_program("rtde_control", UR_RTDE_SET_WATCHDOG)
+    _set_watchdog(model, 10.0)
+    for _ in range(500):  # kickWatchdog(): a package writing 0, every 50 ms
+        if model.steps % 25 == 0:
+            model.input_written(0)
+        model.step()
+    assert model.runtime_state == RuntimeState.PLAYING
+    model.stop_program("a test")  # "All watchdogs are removed on program stop."
+    model.start_program("rtde_control", UR_RTDE_SET_WATCHDOG)
+    for _ in range(500):  # no setWatchdog on the new program: silence is allowed
+        model.step()
+    assert model.runtime_state == RuntimeState.PLAYING
+
+
+def test_rtde_watchdog_pause_action_and_non_positive_frequency() -> None:
+    model = ControllerModel(Q0, CommandLog())
+    model.start_program("rtde_control", UR_RTDE_SET_WATCHDOG.replace('"stop"', '"pause"'))
+    _set_watchdog(model, 0.0)  # no watchdog
+    for _ in range(100):
+        model.step()
+    assert model.runtime_state == RuntimeState.PLAYING
+    _set_watchdog(model, 50.0)
+    for _ in range(20):
+        model.step()
+    assert model.runtime_state == RuntimeState.PAUSED
 
 
 # -- the process ------------------------------------------------------------------------------

@@ -35,7 +35,10 @@ def unused_host() -> str:
 
 
 def make_arm(host: str, **arm: object) -> UrRtdeArm:
-    cfg = config_from_dict({"arm": {"host": host, "stale_cycles": STALE, **arm}})
+    """watchdog_min_frequency 2 Hz unless given: a test process that a loaded machine
+    stalls for 100 ms must not have its program stopped by the controller."""
+    arm = {"stale_cycles": STALE, "watchdog_min_frequency": 2.0, **arm}
+    cfg = config_from_dict({"arm": {"host": host, **arm}})
     return UrRtdeArm.from_config(cfg)
 
 
@@ -221,9 +224,67 @@ def test_safety_stop_is_detected_on_the_first_sample_that_shows_it(
     assert fake.state().qd[5] > 0.0  # moves again without a reconnect
 
 
+def test_controller_watchdog_stops_the_arm_when_the_client_goes_quiet(
+        fake: FakeURController) -> None:
+    """A daemon that stops talking (hung, SIGSTOPped, dead) leaves the arm at rest:
+    the first speedJ sets the script's RTDE watchdog; when the packages stop, the
+    controller stops the program and the joints within 1/f plus the braking time."""
+    arm = make_arm(fake.host, watchdog_min_frequency=10.0)
+    arm.connect()
+    try:
+        fresh_state(arm)
+        qd = np.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.0])
+        clock = Cycles()
+        for _ in range(250):
+            arm.read_state()
+            arm.speed_j(qd, 40.0, PERIOD)
+            clock.wait()
+        assert arm.watchdog_on
+        # the client goes quiet: no read, no speedJ, no kick
+        deadline = time.monotonic() + 30.0
+        while fake.state().runtime_state == 2 or fake.state().qd.any():
+            assert time.monotonic() < deadline, "the arm kept moving without commands"
+            time.sleep(0.01)
+        stopped = [c for c in fake.commands(CommandKind.PROGRAM)
+                   if (c.text or "").startswith("stopped (rtde watchdog")]
+        assert len(stopped) == 1, fake.commands(CommandKind.PROGRAM)
+        last = fake.commands(CommandKind.SPEEDJ)[-1]
+        assert last.qd == pytest.approx(tuple(qd))
+        quiet = stopped[0].controller_time - last.controller_time
+        assert 0.1 <= quiet <= 0.1 + 0.01  # 1/f after the last package, to a few periods
+        print(f"program stopped {quiet * 1e3:.0f} ms after the last speedJ")
+        with pytest.raises(SafetyFault) as info:
+            arm.read_state()
+        assert info.value.cause is FaultCause.ARM_NOT_PLAYING
+    finally:
+        arm.close()
+
+
+def test_kicks_keep_the_program_running_without_motion(fake: FakeURController) -> None:
+    arm = make_arm(fake.host, watchdog_min_frequency=1.0)
+    arm.connect()
+    try:
+        fresh_state(arm)
+        arm.kick_watchdog()  # the first kick of a connection sets the watchdog
+        assert arm.watchdog_on
+        [setting] = [c for c in fake.commands(CommandKind.RTDE_COMMAND) if c.code == 35]
+        t_end = time.monotonic() + 3.0  # three watchdog periods of kicks only
+        while time.monotonic() < t_end:
+            arm.read_state()
+            arm.kick_watchdog()
+            time.sleep(0.01)
+        assert arm.read_state().runtime_state == 2
+        assert not [c for c in fake.commands(CommandKind.PROGRAM)
+                    if (c.text or "").startswith("stopped")]
+        assert setting.controller_time > 0
+    finally:
+        arm.close()
+
+
 def test_program_stop_is_detected_and_reconnect_restarts_the_script(
         fake: FakeURController, arm: UrRtdeArm) -> None:
     fresh_state(arm)
+    arm.kick_watchdog()  # set (speed_j would set it on a program that is already stopped)
     t_fault = fake.stop_program()
     fault, states = run_until_fault(arm, np.zeros(6))
     assert fault.cause is FaultCause.ARM_NOT_PLAYING and fault.details["runtime_state"] == 1
@@ -240,6 +301,8 @@ def test_program_stop_is_detected_and_reconnect_restarts_the_script(
 def test_frozen_stream_is_detected_after_stale_cycles(fake: FakeURController,
                                                        arm: UrRtdeArm) -> None:
     qd = np.array([0.1, 0, 0, 0, 0, 0])
+    fresh_state(arm)
+    arm.kick_watchdog()  # set while the link is fresh, as the daemon's idle cycles do
     s0 = fresh_state(arm)
     n0 = len(fake.commands(CommandKind.SPEEDJ))
     fake.freeze_stream(True)

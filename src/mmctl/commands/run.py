@@ -28,6 +28,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import faulthandler
+
+    faulthandler.enable()  # a crash in a C extension leaves every thread's stack in the log
+    try:
+        return _run(args)
+    except KeyboardInterrupt:  # Ctrl-C before the daemon took the signals over: no devices
+        return 130
+
+
+def _run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from mmctl.runtime.client import load

@@ -20,6 +20,12 @@ class ArmConfig:
     stale_cycles: int = param(
         5, gt=0, doc="cycles without a new controller timestamp before a 'stale' fault"
     )
+    watchdog_min_frequency: float = param(
+        10.0, unit="Hz", ge=1.0, le=250.0,
+        doc="the controller's RTDE watchdog (ur_rtde setWatchdog): the control script "
+        "stops, and the arm with it, when the daemon sends nothing for longer than "
+        "1 / this; the loop kicks it every cycle",
+    )
     connect_timeout: float = param(
         2.0, unit="s", gt=0.0, le=60.0,
         doc="how long connect() waits for the dashboard/RTDE ports and the first RTDE "

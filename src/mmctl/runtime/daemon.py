@@ -55,6 +55,15 @@ log = structlog.get_logger("mmctl.daemon")
 #: since the origin [s], the safety state's name); must not block.
 SampleHook = Callable[[Any, int, float, str], None]
 
+#: Signals that end the daemon by default and are turned into a stop instead: the
+#: service manager's (TERM), a terminal's (INT: Ctrl-C, QUIT: Ctrl-\, HUP: the ssh
+#: session closed), the user signals, resource limits (XCPU, XFSZ) and a power failure
+#: (PWR).  SIGKILL and a crash (SEGV, ABRT, BUS) cannot be caught: then the devices'
+#: own watchdogs stop the robot (the arm's RTDE watchdog, the drives' command watchdog).
+STOP_SIGNALS = tuple(getattr(signal, name) for name in (
+    "SIGTERM", "SIGINT", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM",
+    "SIGXCPU", "SIGXFSZ", "SIGPWR", "SIGVTALRM") if hasattr(signal, name))
+
 _BASE_CAUSES = frozenset({FaultCause.DRIVE_FAULT, FaultCause.DRIVE_HEARTBEAT,
                           FaultCause.BASE_LINK})
 _ARM_RECONNECT_CAUSES = frozenset({FaultCause.ARM_DISCONNECTED, FaultCause.ARM_STALE,
@@ -172,7 +181,8 @@ class Daemon:
             self.open()
             self.start()
             self._wait_ready()
-            if self.cfg.sim.enabled and self.cfg.sim.auto_enable and self.sim is not None:
+            if (self.cfg.sim.enabled and self.cfg.sim.auto_enable and self.sim is not None
+                    and not self._stop_requested.is_set()):
                 self._auto_enable()
             deadline = None if duration is None else time.monotonic() + duration
             while not self._stop_requested.is_set():
@@ -224,14 +234,25 @@ class Daemon:
                  if self.loop.error else None)
 
     def _install_signals(self) -> None:
+        """Every signal whose default would end the process is a stop: the stop commands
+        go out, then the devices close (:data:`STOP_SIGNALS`).  The handler only sets
+        the stop request, so a second signal during the shutdown changes nothing."""
         def on_signal(signum: int, _frame: Any) -> None:
             self.request_stop(signal.Signals(signum).name)
 
-        signal.signal(signal.SIGTERM, on_signal)
-        signal.signal(signal.SIGINT, on_signal)
+        for signum in STOP_SIGNALS:
+            signal.signal(signum, on_signal)
 
     def _wait_ready(self) -> None:
-        healthy = self._healthy_cycle.wait(self.cfg.daemon.ready_timeout)
+        deadline = time.monotonic() + self.cfg.daemon.ready_timeout
+        healthy = False
+        while not self._stop_requested.is_set() and self.loop.running:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            healthy = self._healthy_cycle.wait(min(left, 0.05))  # a stop is seen at once
+            if healthy:
+                break
         if not healthy:
             log.warning("ready_without_healthy_cycle",
                         conditions=sorted(c.value for c in self.last_conditions))
@@ -480,8 +501,11 @@ class Daemon:
             hook(result, tick.index, (tick.deadline_ns - self._t0_ns) * 1e-9,
                  self.safety.state.value)
             self.hook_ns[self.cycles % self.hook_ns.shape[0]] = time.perf_counter_ns() - t0
+        moved = False
         if not stop_now and self.safety.armed and result is not None:
-            self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
+            moved = self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
+        if not moved:
+            self._kick_arm_watchdog()
         if not conditions and dev.connected and not self._healthy_cycle.is_set():
             self._healthy_cycle.set()  # once: Event.set takes a lock and notifies
         if stop_now:
@@ -494,10 +518,11 @@ class Daemon:
                 if suppressed is not None:
                     log.warning("sensor_request_failed", error=str(exc), suppressed=suppressed)
 
-    def _send_motion(self, r: CycleResult, base: bool = True) -> None:
+    def _send_motion(self, r: CycleResult, base: bool = True) -> bool:
         """speedJ, then (every ``loop.base_divider``-th cycle: ``base``) the base twist
         (``send_twist`` re-checks the drives and sends zero itself when they fail; the
-        cycle then stops the arm too, before it ends).
+        cycle then stops the arm too, before it ends).  Returns whether speedJ went
+        out (it feeds the controller's RTDE watchdog).
 
         speedJ goes first: the base's RPDOs + SYNC wake the CANopen threads, and a
         ur_rtde call made while they run waits for the GIL."""
@@ -509,9 +534,9 @@ class Daemon:
             cause = getattr(exc, "cause", FaultCause.ARM_DISCONNECTED)
             if self.safety.trip(cause, device="arm", **getattr(exc, "details", {})):
                 self._send_stop()
-            return
+            return False
         if not base:
-            return
+            return True
         try:
             dev.base.send_twist(float(r.twist[0]), float(r.twist[1]), float(r.twist[2]))
             self.commands_sent["twist"] += 1
@@ -519,6 +544,17 @@ class Daemon:
             cause = getattr(exc, "cause", FaultCause.BASE_LINK)
             if self.safety.trip(cause, device="base", **getattr(exc, "details", {})):
                 self._send_stop()
+        return True
+
+    def _kick_arm_watchdog(self) -> None:
+        """A cycle without speedJ still feeds the controller's RTDE watchdog: only a
+        daemon that stops cycling gets the arm stopped by the controller."""
+        try:
+            self.devices.arm.kick_watchdog()
+        except (SafetyFault, TransportError) as exc:  # the next read names the cause
+            suppressed = self._limiter.allow("arm_watchdog_kick_failed")
+            if suppressed is not None:
+                log.warning("arm_watchdog_kick_failed", error=str(exc), suppressed=suppressed)
 
     def _send_stop(self) -> None:
         self.devices.stop(self.cfg.arm.stop_deceleration, disable_base=True)

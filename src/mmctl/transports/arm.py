@@ -33,6 +33,10 @@ class Arm(Protocol):
         leading-axis acceleration [rad/s^2], valid for dt [s]."""
         ...
 
+    def kick_watchdog(self) -> None:
+        """Keep the controller's communication watchdog fed in a cycle without a
+        speed_j (a daemon that goes quiet gets the arm stopped by the controller)."""
+
     def stop(self, deceleration: float | None = None) -> None:
         """Bring the joints to rest with ``deceleration`` [rad/s^2]; never blocks long."""
 

@@ -1,6 +1,17 @@
 """The UR10e link through ur_rtde (``RTDEControlInterface`` + ``RTDEReceiveInterface``).
 
-Per cycle the daemon calls :meth:`UrRtdeArm.read_state` then :meth:`UrRtdeArm.speed_j`.
+Per cycle the daemon calls :meth:`UrRtdeArm.read_state`, then :meth:`UrRtdeArm.speed_j`
+(armed) or :meth:`UrRtdeArm.kick_watchdog` (not armed).
+
+**The net under the daemon: the controller's RTDE watchdog.**  ur_rtde's control script
+runs speedj in a thread with the latest target until told otherwise, so a daemon that
+hangs, is stopped (SIGSTOP) or dies would leave the arm moving.  Before the first
+speedJ of every connection (and on the first :meth:`UrRtdeArm.kick_watchdog`) this
+module calls ``setWatchdog(arm.watchdog_min_frequency)``: the script's
+``rtde_set_watchdog("input_int_register_0", f, "stop")``, after which the controller
+stops the program, and the arm with it, when that input register is not updated for
+1/f seconds.  Every speedJ updates it (its command number goes there) and so does
+``kickWatchdog()`` (it writes 0); the daemon calls one of the two every cycle.
 Health is judged here, from what the controller streams, never from speedJ's return
 value (it stays True after a lost link).  ``read_state`` raises
 :class:`~mmctl.errors.SafetyFault` with, in this order of precedence:
@@ -105,6 +116,8 @@ class UrRtdeArm:
         self._ctrl_checked: bool | None = None
         """The control link's state as the newest read_state saw it, for the next speed_j
         (None: speed_j asks ur_rtde itself)."""
+        self.watchdog_on = False
+        """The control script's RTDE watchdog is set on this connection."""
         self.last_state: ArmState | None = None
         """The newest sample read, also when read_state raised on it."""
         self.controller_version = ""
@@ -162,6 +175,7 @@ class UrRtdeArm:
         self._ctrl, self._recv = ctrl, recv
         self._last_time, self._stale, self._healthy = math.nan, 0, True
         self._ctrl_checked = None
+        self.watchdog_on = False  # a new program: its watchdog is set before any motion
         log.info("arm_connected", host=host, controller_version=version,
                  frequency=self.config.frequency)
 
@@ -194,6 +208,7 @@ class UrRtdeArm:
             log.warning("arm_close_stop_failed", host=self.host, why=str(exc))
         finally:
             self._healthy = False
+            self.watchdog_on = False
             self._ctrl = self._recv = None  # ur_rtde's destructors disconnect
             log.info("arm_closed", host=self.host)
 
@@ -260,6 +275,8 @@ class UrRtdeArm:
         ratio = max([abs(x) * k for x, k in zip(v, self._inv_limits)])
         if ratio > 1.0:
             v = [x / ratio for x in v]
+        if not self.watchdog_on:
+            self._set_watchdog()  # never a motion without the controller's watchdog
         try:
             return bool(self._ctrl.speedJ(v, min(max(a, 0.0), UR_ACCELERATION_MAX), t))
         except RuntimeError as exc:  # the write failed and ur_rtde's own reconnect too
@@ -288,6 +305,28 @@ class UrRtdeArm:
         except RuntimeError as exc:  # the link broke under the call
             log.warning("arm_stop_not_sent", host=self.config.host, why=str(exc))
 
+    def kick_watchdog(self) -> None:
+        """Tell the controller the daemon is alive (every cycle without a speedJ).
+
+        The first call of a connection sets the watchdog (``setWatchdog``, a command the
+        script acknowledges: a few controller periods), later calls ``kickWatchdog()``
+        (one RTDE package, never waits).  Setting it needs a fresh, healthy link (the
+        newest read_state): a stale or stopped controller would keep the handshake
+        waiting; then nothing is sent, and nothing can move either (speed_j sets it
+        first).  Raises SafetyFault(ARM_DISCONNECTED) when the write fails.
+        """
+        if self._ctrl is None:
+            return
+        if not self.watchdog_on:
+            if self._fresh():
+                self._set_watchdog()
+            return
+        try:
+            self._ctrl.kickWatchdog()
+        except RuntimeError as exc:
+            raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host,
+                              why=str(exc)) from None
+
     def digital_input(self, index: int) -> bool:
         """Digital input ``index`` (0-7 standard, 8-15 configurable, 16-17 tool)."""
         if self._recv is None:
@@ -295,6 +334,23 @@ class UrRtdeArm:
         return bool((int(self._recv.getActualDigitalInputBits()) >> index) & 1)
 
     # -- internals -----------------------------------------------------------------------
+
+    def _set_watchdog(self) -> None:
+        """``setWatchdog(min frequency)`` on the running control script; SafetyFault
+        (ARM_DISCONNECTED) when it fails: no motion may go out without it."""
+        f = self.config.watchdog_min_frequency
+        try:
+            ok = bool(self._ctrl.setWatchdog(f))
+        except RuntimeError as exc:
+            raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host,
+                              why=f"setWatchdog failed: {exc}") from None
+        if not ok:  # ur_rtde refuses commands in a safety stop or without the program:
+            self.read_state()  # the newest sample names that cause, if it shows it yet
+            raise SafetyFault(FaultCause.ARM_NOT_PLAYING, host=self.config.host,
+                              why="the control script did not take setWatchdog")
+        self.watchdog_on = True
+        log.info("arm_watchdog_set", host=self.config.host, min_frequency_hz=f,
+                 timeout_s=round(1.0 / f, 4))
 
     def _stream_silent(self) -> bool:
         """The controller answers on the RTDE port but sends no data (a frozen stream)."""

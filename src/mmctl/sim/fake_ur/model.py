@@ -25,6 +25,7 @@ from mmctl.sim.fake_ur.program import (
     Registers,
     RtdeControlProgram,
     register_offset,
+    watchdog_actions,
 )
 
 PERIOD = 0.002
@@ -90,13 +91,17 @@ class ControllerModel:
         self.emergency_stop = False
         self.remote_control = True
         self.frozen = False
+        self.paused = False
+        """The program was paused (its RTDE watchdog with action "pause")."""
         self.digital_inputs = 0
 
     # -- state seen by clients -------------------------------------------------------
 
     @property
     def runtime_state(self) -> int:
-        return RuntimeState.PLAYING if self.program is not None else RuntimeState.STOPPED
+        if self.program is None:
+            return RuntimeState.STOPPED
+        return RuntimeState.PAUSED if self.paused else RuntimeState.PLAYING
 
     @property
     def safety_status_bits(self) -> int:
@@ -154,18 +159,39 @@ class ControllerModel:
         if name != "rtde_control":
             self.log.add(self.time, CommandKind.PROGRAM, text=f"rejected: unsupported ({name})")
             return
-        self.program = RtdeControlProgram(self.regs, self.plant, register_offset(text))
+        self.program = RtdeControlProgram(self.regs, self.plant, register_offset(text),
+                                          watchdog_actions(text), lambda: self.time)
         self.program.motion_allowed = self.motion_allowed
         self.program_name = name
         self.log.add(self.time, CommandKind.PROGRAM, text=f"started ({name})")
 
     def stop_program(self, why: str) -> None:
-        """End the running program (stopScript, dashboard ``stop``, a test)."""
+        """End the running program (stopScript, dashboard ``stop``, its RTDE watchdog, a
+        test); its watchdogs go with it."""
         if self.program is None:
             return
         self.program = None
+        self.paused = False
         self.plant.stop(PROGRAM_STOP_DECELERATION)
         self.log.add(self.time, CommandKind.PROGRAM, text=f"stopped ({why})")
+
+    def _check_watchdog(self, program: RtdeControlProgram) -> None:
+        """The program's RTDE watchdog: a late input update pauses or stops it."""
+        wd = program.watchdog
+        if wd is None or not wd.expired(self.time):
+            return
+        why = (f"rtde watchdog: input_int_register_{wd.register} not updated for "
+               f"{self.time - wd.last_update:.3f} s (min frequency {wd.min_frequency:g} Hz)")
+        if wd.action == "stop":
+            self.stop_program(why)
+        elif wd.action == "pause":
+            program.watchdog = None
+            self.paused = True
+            self.plant.stop(PROGRAM_STOP_DECELERATION)
+            self.log.add(self.time, CommandKind.PROGRAM, text=f"paused ({why})")
+        else:  # "ignore": reported once, as the controller's log does
+            program.watchdog = None
+            self.log.add(self.time, CommandKind.PROGRAM, text=f"ignored ({why})")
 
     def set_protective_stop(self, on: bool) -> None:
         self.protective_stop = bool(on)
@@ -181,6 +207,9 @@ class ControllerModel:
         """Log the command a client has just written (called per received data package)."""
         program = self.program
         off = program.offset if program is not None else 0
+        if program is not None and program.watchdog is not None \
+                and cmd_register == program.watchdog.register:
+            program.watchdog.last_update = self.time
         if cmd_register != off:
             return
         cmd = self.regs.in_int[off]
@@ -198,10 +227,12 @@ class ControllerModel:
     def step(self, dt: float = PERIOD) -> None:
         """One controller period."""
         program = self.program
-        if program is not None:
+        if program is not None and not self.paused:
             program.cycle()
             if not program.running:
                 self.stop_program("stopScript")
+            else:
+                self._check_watchdog(program)
         if not self.motion_allowed() and self.plant.motion is Motion.SPEED:
             self.plant.stop(SAFETY_STOP_DECELERATION)
         self.plant.step(dt)

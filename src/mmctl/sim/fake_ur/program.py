@@ -13,12 +13,22 @@ cycle; any other command is executed once, answered "done", and the script answe
 "ready" again after the client has cleared the command register (written 0).  Command
 255 ends the program.  This module reproduces that behaviour; the motion itself is
 :class:`~mmctl.sim.fake_ur.plant.JointPlant`'s.
+
+Command 35 (ur_rtde's ``setWatchdog(min_frequency)``) runs the script's
+``rtde_set_watchdog("input_int_register_<offset>", watchdog_min_frequency, "stop")``:
+from then on the controller expects an update of that input register (any RTDE data
+package that carries it: ``kickWatchdog()`` writes 0 into it, every command writes its
+number) at least ``min_frequency`` times a second, and takes the action (URScript:
+``"ignore"``, ``"pause"`` or ``"stop"`` the program) when one is late.  The URScript
+manual: "All watchdogs are removed on program stop."  :class:`RtdeWatchdog` is that
+watchdog; the controller model checks it every period.
 """
 
 from __future__ import annotations
 
 import re
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from mmctl.sim.fake_ur.plant import JointPlant
 
@@ -27,6 +37,7 @@ SPEED_STOP = 15
 SERVO_STOP = 16
 STOPL = 33
 STOPJ = 34
+SET_WATCHDOG = 35
 STOP_SCRIPT = 255
 #: Commands the script executes every cycle and answers with "ready" at once.
 REALTIME_COMMANDS = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
@@ -36,6 +47,36 @@ DONE = 2
 _DEF = re.compile(r"^def\s+(\w+)\s*\(\s*\)\s*:", re.MULTILINE)
 _END = re.compile(r"^end\b", re.MULTILINE)
 _OFFSET = re.compile(r"reg_offset_int\s*=\s*(?:#[^\n]*\n?)?\s*(\d+)")
+_SET_WATCHDOG = re.compile(
+    r'rtde_set_watchdog\(\s*"input_int_register_(\d+)"\s*,[^,]*,\s*"(\w+)"\s*\)')
+WATCHDOG_ACTIONS = ("ignore", "pause", "stop")
+DEFAULT_WATCHDOG_ACTION = "pause"
+"""URScript's default action of ``rtde_set_watchdog``."""
+
+
+@dataclass
+class RtdeWatchdog:
+    """An active ``rtde_set_watchdog``: input int ``register`` must be updated at least
+    ``min_frequency`` [Hz] times a second, else ``action`` (ignore | pause | stop);
+    ``last_update`` is the controller time [s] of the newest update."""
+
+    register: int
+    min_frequency: float
+    action: str
+    last_update: float
+
+    def expired(self, now: float) -> bool:
+        """No update for longer than 1 / min_frequency at controller time ``now`` [s]."""
+        return (now - self.last_update) * self.min_frequency > 1.0
+
+
+def watchdog_actions(program_text: str) -> dict[int, str]:
+    """The action of each ``rtde_set_watchdog("input_int_register_N", ..., "action")``
+    in a program, by register N (the first one written for a register wins)."""
+    actions: dict[int, str] = {}
+    for register, action in _SET_WATCHDOG.findall(program_text):
+        actions.setdefault(int(register), action)
+    return actions
 
 
 class Registers:
@@ -91,17 +132,22 @@ def register_offset(program_text: str) -> int:
 class RtdeControlProgram:
     """The ur_rtde control script, one :meth:`cycle` per controller period.
 
-    ``on_command(code)`` is called once each time a command is executed (for logging);
-    ``stop_deceleration`` [rad/s^2] is how the joints stop when the program ends.
+    ``watchdog_actions``: what the script's ``rtde_set_watchdog`` calls do, by register
+    (:func:`watchdog_actions` of the program text); ``clock()``: the controller time [s].
     """
 
-    def __init__(self, regs: Registers, plant: JointPlant, offset: int = 0):
+    def __init__(self, regs: Registers, plant: JointPlant, offset: int = 0,
+                 watchdog_actions: dict[int, str] | None = None,
+                 clock: Callable[[], float] = lambda: 0.0):
         self.regs = regs
         self.plant = plant
         self.offset = offset
         self.executing = False
         self.running = True
         self.motion_allowed: Callable[[], bool] = lambda: True
+        self.watchdog_actions = dict(watchdog_actions or {})
+        self.clock = clock
+        self.watchdog: RtdeWatchdog | None = None
         regs.out_int[offset] = READY  # signal_ready() before the main loop
 
     def cycle(self) -> None:
@@ -129,6 +175,12 @@ class RtdeControlProgram:
                 self.plant.speed(d[off:off + 6], d[off + 6])
         elif cmd in (SPEED_STOP, SERVO_STOP, STOPJ, STOPL):
             self.plant.stop(d[off])
+        elif cmd == SET_WATCHDOG:
+            frequency = d[off]
+            action = self.watchdog_actions.get(off, DEFAULT_WATCHDOG_ACTION)
+            # URScript refuses a non-positive frequency; the fake removes the watchdog
+            self.watchdog = (RtdeWatchdog(off, frequency, action, self.clock())
+                             if frequency > 0.0 and action in WATCHDOG_ACTIONS else None)
         elif cmd == STOP_SCRIPT:
             self.running = False
             return

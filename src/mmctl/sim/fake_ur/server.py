@@ -311,10 +311,18 @@ def run(host: str, q_init: Sequence[float], block: Any = None, control: Any = No
         log_capacity: int = 200_000) -> None:
     """Entry point of the fake's process: serve until asked to stop.
 
-    Reports ``("ready", pid)`` or ``("error", message)`` on ``control`` first.
+    Reports ``("ready", pid)`` or ``("error", message)`` on ``control`` first.  The
+    process leaves its parent's session first: a terminal's Ctrl-C (SIGINT to the whole
+    foreground process group) must reach only the daemon, which sends its stop commands
+    to this controller and then ends it.  A parent that dies closes the control pipe,
+    which ends this process too.
     """
     import os
 
+    try:
+        os.setsid()
+    except OSError:  # already a session leader (run standalone)
+        pass
     model = ControllerModel(q_init, CommandLog(log_capacity))
     server = FakeURServer(host, model, control, block)
     try:

@@ -1,0 +1,206 @@
+"""The stop path of the real daemon (`mmctl run` as a subprocess on the simulated robot):
+a daemon that stops talking leaves the arm at rest (the controller's RTDE watchdog), every
+terminating signal is a stop, and a terminal's Ctrl-C reaches only the daemon.
+
+Each test runs its own daemon (its own socket, fake-UR address and CAN channels) and
+reads what the fakes received from their command logs (``--sim-log``), written when
+the daemon shuts down.  Nothing is timed: travel is compared with what the same motion
+would cover without the watchdog.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from mmctl.errors import IpcError
+from mmctl.runtime.ipc import request
+
+pytestmark = pytest.mark.timeout(600)
+ROOT = Path(__file__).resolve().parents[1]
+_hosts = iter(range(2, 250))
+
+
+class Daemon:
+    """One `mmctl run` subprocess, optionally in a process group of its own."""
+
+    def __init__(self, tmp: Path, own_group: bool = False) -> None:
+        digits = "".join(c for c in os.environ.get("PYTEST_XDIST_WORKER", "gw0") if c.isdigit())
+        host = f"127.{10 + int(digits or 0)}.{203 + os.getpid() % 40}.{next(_hosts)}"
+        cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
+        tag = f"{os.getpid()}-{host.replace('.', '-')}"
+        cfg["name"] = "stop-path-test"
+        cfg["arm"]["host"] = host
+        cfg["sensor"]["can"]["channel"] = f"sp-s-{tag}"
+        cfg["base"]["canopen"]["channel"] = f"sp-b-{tag}"
+        cfg["sim"].update({"human": False, "auto_enable": False})
+        self.socket = tmp / "run" / "mmctl.sock"
+        cfg["daemon"] = {"socket_path": str(self.socket)}
+        self.config = tmp / "daemon.yaml"
+        self.config.write_text(yaml.safe_dump(cfg))
+        self.sim_log = tmp / "simlog"
+        self.out = tmp / "daemon.log"
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        env.pop("NOTIFY_SOCKET", None)
+        with self.out.open("ab") as f:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "mmctl.cli", "run", "--config", str(self.config),
+                 "--sim-log", str(self.sim_log), "--log-json"],
+                stdout=f, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT),
+                start_new_session=own_group)
+
+    def call(self, cmd: str, **args: Any) -> Any:
+        return request(self.socket, cmd, timeout=60.0, **args)
+
+    def log_text(self) -> str:
+        return self.out.read_text(errors="replace")
+
+    def events(self) -> list[dict[str, Any]]:
+        return [json.loads(line) for line in self.log_text().splitlines()
+                if line.startswith("{")]
+
+    def wait_for(self, pred: Any, what: str, timeout: float = 180.0) -> Any:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                value = pred()
+            except (IpcError, OSError):
+                value = None
+            if value:
+                return value
+            if self.proc.poll() is not None:
+                raise AssertionError(f"daemon exited ({self.proc.returncode}) while waiting "
+                                     f"for {what}:\n{self.log_text()[-4000:]}")
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}\n{self.log_text()[-4000:]}")
+
+    def ready(self) -> None:
+        self.wait_for(lambda: self.call("status")["cycles"] > 0, "the control socket")
+
+    def arm_and_push(self, push: list[float]) -> None:
+        """Tare, enable, push: the robot moves."""
+        self.call("tare")
+        self.wait_for(lambda: not self.call("status")["taring"], "the tare")
+        self.wait_for(lambda: self._enabled(), "enable")
+        self.call("sim", push=push)
+        p0 = self.handle()
+        self.wait_for(lambda: np.linalg.norm(self.handle() - p0) > 0.03, "motion")
+
+    def _enabled(self) -> bool:
+        try:
+            return self.call("enable")["state"] == "armed"
+        except IpcError:
+            return False
+
+    def handle(self) -> np.ndarray:
+        """The handle's true position in the world [m] (the simulation's, from the fake
+        controller's joints and the fake drives)."""
+        return np.array(self.call("status")["sim"]["handle_world"])
+
+    def ur_log(self) -> list[dict[str, Any]]:
+        return [json.loads(line) for line in (self.sim_log / "ur_commands.jsonl").open()]
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(30)
+
+
+@pytest.fixture
+def daemon(tmp_path: Path) -> Iterator[Daemon]:
+    d = Daemon(tmp_path)
+    try:
+        d.ready()
+        yield d
+    finally:
+        d.kill()
+
+
+def _stop_commands_after_motion(ur: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    motion = [c for c in ur if c["kind"] in ("speedj", "speed_stop")]
+    last = max(i for i, c in enumerate(motion) if c["kind"] == "speedj" and any(c["qd"]))
+    return motion[last + 1:]
+
+
+def test_a_frozen_daemon_leaves_the_arm_at_rest(daemon: Daemon) -> None:
+    """SIGSTOP the armed daemon while a push moves the arm: the controller's RTDE
+    watchdog stops the program and the arm, although the daemon sends nothing."""
+    daemon.arm_and_push([0.0, 25.0, 0.0])
+    p0, t0 = daemon.handle(), time.monotonic()
+    time.sleep(0.5)
+    p1, t1 = daemon.handle(), time.monotonic()
+    speed = np.linalg.norm(p1 - p0) / (t1 - t0)  # the handle's speed before the freeze
+    assert speed > 0.05, speed
+    st = daemon.call("status")
+    before, updates = np.array(st["sim"]["handle_world"]), st["sim"]["updates"]
+    os.kill(daemon.proc.pid, signal.SIGSTOP)
+    frozen = 3.0
+    time.sleep(frozen)
+    os.kill(daemon.proc.pid, signal.SIGCONT)
+    # the simulated person's thread (in the daemon's process) observes the true handle
+    # again a few updates after SIGCONT; by then the daemon has found the stopped program
+    def settled() -> dict[str, Any] | None:
+        s = daemon.call("status")
+        return s if s["sim"]["updates"] > updates + 5 and s["state"] == "fault" else None
+
+    after = daemon.wait_for(settled, "the fault after SIGCONT")
+    travel = float(np.linalg.norm(np.array(after["sim"]["handle_world"]) - before))
+    print(f"handle speed {speed:.3f} m/s before the freeze; travel during a {frozen} s "
+          f"freeze: {travel * 1e3:.1f} mm (without a watchdog: ~{speed * frozen * 1e3:.0f} mm)")
+    assert travel < 0.25 * speed * frozen
+    assert "arm_not_playing" in after["conditions"], after  # the program was stopped
+    daemon.proc.send_signal(signal.SIGTERM)
+    assert daemon.proc.wait(120) == 0, daemon.log_text()[-3000:]
+    programs = [c for c in daemon.ur_log() if c["kind"] == "program"]
+    stops = [c for c in programs if c["text"].startswith("stopped (rtde watchdog")]
+    assert len(stops) == 1, programs
+
+
+@pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1])
+def test_every_terminating_signal_is_a_stop(tmp_path: Path, sig: signal.Signals) -> None:
+    d = Daemon(tmp_path)
+    try:
+        d.ready()
+        d.arm_and_push([0.0, 25.0, 0.0])
+        d.proc.send_signal(sig)
+        assert d.proc.wait(120) == 0, d.log_text()[-3000:]
+    finally:
+        d.kill()
+    stopping = next(e for e in d.events() if e["event"] == "daemon_stopping")
+    assert stopping["reason"] == sig.name
+    after = _stop_commands_after_motion(d.ur_log())
+    assert after and all(c["kind"] == "speed_stop" or not any(c["qd"]) for c in after), after
+    assert not d.socket.exists()
+    assert "Traceback" not in d.log_text()
+
+
+def test_ctrl_c_reaches_only_the_daemon_which_stops_the_robot_first(tmp_path: Path) -> None:
+    """A terminal's Ctrl-C signals the whole foreground process group: here the daemon's
+    own group (start_new_session) gets SIGINT, as from a terminal."""
+    d = Daemon(tmp_path, own_group=True)
+    try:
+        d.ready()
+        d.arm_and_push([0.0, 25.0, 0.0])
+        ur_pid = d.call("status")["sim"]["ur_pid"]
+        os.killpg(d.proc.pid, signal.SIGINT)
+        assert d.proc.wait(120) == 0, d.log_text()[-3000:]
+    finally:
+        d.kill()
+    text = d.log_text()
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-3000:]
+    assert "arm_stop_not_sent" not in text, text[-3000:]
+    after = _stop_commands_after_motion(d.ur_log())
+    assert after and all(c["kind"] == "speed_stop" or not any(c["qd"]) for c in after), after
+    with pytest.raises(ProcessLookupError):
+        os.kill(ur_pid, 0)  # the daemon ended the fake controller after the stop
