@@ -15,6 +15,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -204,3 +205,62 @@ def test_ctrl_c_reaches_only_the_daemon_which_stops_the_robot_first(tmp_path: Pa
     assert after and all(c["kind"] == "speed_stop" or not any(c["qd"]) for c in after), after
     with pytest.raises(ProcessLookupError):
         os.kill(ur_pid, 0)  # the daemon ended the fake controller after the stop
+
+
+def _armed(d: Daemon) -> bool:
+    return bool(d.call("status")["state"] == "armed")
+
+
+def test_an_enable_reported_as_failed_never_takes_effect_later(daemon: Daemon) -> None:
+    """The arm's program stopped: enable must reconnect (> 1 s: ur_rtde's destructors
+    alone sleep 0.5 s each).  A client that gives up after 0.5 s is told it failed, and
+    the robot must not arm when the reconnect completes; the loop keeps cycling."""
+    daemon.call("tare")
+    daemon.wait_for(lambda: not daemon.call("status")["taring"], "the tare")
+    daemon.wait_for(lambda: daemon._enabled(), "enable")
+    daemon.call("sim", fault="arm_not_playing")
+    daemon.wait_for(lambda: daemon.call("status")["state"] == "fault", "the fault")
+    cycles = daemon.call("status")["cycles"]
+    with pytest.raises(IpcError):
+        request(daemon.socket, "enable", timeout=0.5)
+    # the reconnect goes on in the daemon; wait until it has ended (its log event)
+    daemon.wait_for(lambda: "arm_reconnected" in daemon.log_text(), "the reconnect to end")
+    st = daemon.call("status")
+    assert st["state"] == "fault", st
+    assert st["cycles"] > cycles + 100  # the loop kept its period during the reconnect
+    time.sleep(0.5)
+    assert not _armed(daemon)
+    daemon.wait_for(lambda: daemon._enabled(), "enable with a patient client")
+    assert _armed(daemon)
+
+
+def test_sigterm_during_a_reconnect_stops_at_once(daemon: Daemon) -> None:
+    daemon.call("sim", fault="arm_not_playing")
+    daemon.wait_for(lambda: "arm_not_playing" in daemon.call("status")["conditions"],
+                    "the condition")
+    box: list[BaseException | None] = []
+
+    def enable() -> None:
+        try:
+            request(daemon.socket, "enable", timeout=60.0)
+            box.append(None)
+        except IpcError as exc:
+            box.append(exc)
+
+    t = threading.Thread(target=enable)
+    t.start()
+    daemon.wait_for(lambda: "arm_reconnecting" in daemon.log_text(), "the reconnect")
+    daemon.proc.send_signal(signal.SIGTERM)
+    assert daemon.proc.wait(120) == 0, daemon.log_text()[-3000:]
+    t.join(60)
+    events = daemon.events()
+    names = [e["event"] for e in events]
+    start = names.index("arm_reconnecting")
+    # the stop was taken up while the reconnect still ran (not after it)
+    ends = [i for i, n in enumerate(names) if n in ("arm_reconnected", "arm_reconnect_failed")]
+    assert start < names.index("daemon_stopping") and (not ends or
+                                                       names.index("daemon_stopping") < ends[0])
+    assert names.index("daemon_stopping") < names.index("daemon_stopped")
+    assert not any(e["event"] == "safety_state" and e.get("new") == "armed"
+                   for e in events[start:])
+    assert isinstance(box[0], IpcError), box  # the enable did not happen

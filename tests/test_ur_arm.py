@@ -198,6 +198,7 @@ def test_safety_stop_is_detected_on_the_first_sample_that_shows_it(
         cause: FaultCause) -> None:
     qd = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.2])
     fresh_state(arm)
+    arm.kick_watchdog()  # set while healthy, as the daemon's idle cycles do
     t_fault = getattr(fake, inject)(True)
     fault, states = run_until_fault(arm, qd)
     assert fault.cause is cause

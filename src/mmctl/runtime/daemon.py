@@ -31,7 +31,7 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import structlog
@@ -121,6 +121,10 @@ class Daemon:
         self.last_conditions: dict[FaultCause, dict[str, Any]] = {}
         self._button_was = False
         self._base_enabled = False
+        self._arm_busy = False
+        """An arm reconnect runs off the loop thread (set and cleared around it): the
+        loop then leaves the arm alone and counts it as disconnected."""
+        self._arm_reconnect = threading.Lock()
         self._started = time.monotonic()
         self._t0_ns = 0
         self._status_text = ""
@@ -213,7 +217,7 @@ class Daemon:
         self.loop.stop()
         self.loop.wait(5.0)
         if self.devices.connected:
-            self.devices.stop(self.cfg.arm.stop_deceleration)
+            self.devices.stop(self.cfg.arm.stop_deceleration, arm=not self._arm_busy)
             self.commands_sent["stop"] += 1
             if self.safety.state is SafetyState.ARMED:
                 self.safety.disable()
@@ -224,7 +228,11 @@ class Daemon:
                 log.error("socket_close_failed", error=str(exc))
         if self.telemetry is not None:
             self.telemetry.close()
-        self.devices.close()
+        reconnect_done = self._arm_reconnect.acquire(timeout=3 * self.cfg.arm.connect_timeout + 2)
+        if not reconnect_done:  # never close the arm under a reconnect in progress
+            log.error("arm_reconnect_still_running", why="the arm is not closed")
+            self.devices.connected.clear()
+        self.devices.close(arm=reconnect_done)
         if self.sim is not None:
             self.sim.close()
         if self.cpu_latency is not None:
@@ -292,17 +300,28 @@ class Daemon:
         """Run one control command (same names as the socket's) and wait for its result."""
         return self.handle({"cmd": cmd, **args}, None)
 
-    def _on_loop(self, fn: Callable[[], Any]) -> Any:
+    def _on_loop(self, fn: Callable[[], Any], timeout: float | None = None) -> Any:
         """Run ``fn`` on the loop thread and wait; without a loop thread (tests stepping
-        the daemon with :meth:`step_once`) run it right here."""
+        the daemon with :meth:`step_once`) run it right here.
+
+        A command the loop has not started within ``timeout`` [s] (default
+        ``daemon.command_timeout``) is cancelled, so a command reported as failed never
+        takes effect later; one it has started is waited for (the loop runs nothing
+        that blocks: an arm reconnect runs on the caller's thread) and reported as it
+        ended.
+        """
         if not self.loop.running:
             if self.loop.error is not None or self._stop_requested.is_set():
                 raise IpcError("the control loop is not running")
             return fn()
+        fut = self.submit(fn)
         try:
-            return self.submit(fn).result(self.cfg.daemon.command_timeout)
+            return fut.result(self.cfg.daemon.command_timeout if timeout is None else timeout)
         except FutureTimeout:
-            raise IpcError("the control loop did not take the command in time") from None
+            if fut.cancel():
+                raise IpcError("the control loop did not take the command in time "
+                               "(not applied)") from None
+        return fut.result()  # started: ends within its cycle
 
     def handle(self, req: Mapping[str, Any], peer: Peer | None) -> Any:
         """Dispatch one control-socket request (see :mod:`mmctl.runtime.ipc`)."""
@@ -310,7 +329,7 @@ class Daemon:
         if cmd == "status":
             return self.status()
         if cmd == "enable":
-            return self._on_loop(self._enable)
+            return self._enable_request(_budget(req, self.cfg.daemon.command_timeout))
         if cmd == "disable":
             return self._on_loop(self._disable)
         if cmd == "mode":
@@ -335,12 +354,40 @@ class Daemon:
         raise MmctlError(f"unknown command {cmd!r}; known: status, enable, disable, mode, "
                          "switch, tare, stop, trial, sim")
 
+    def _enable_request(self, budget: float) -> dict[str, Any]:
+        """Operator re-arm within ``budget`` [s]: the checks and the arming run on the
+        loop thread (:meth:`_enable`); when the arm's link or program is lost, the arm
+        reconnects first on *this* thread (it takes seconds), while the loop keeps its
+        period and leaves the arm alone.  An enable reported as failed (refused, the
+        reconnect failed, the budget ran out) never takes effect later."""
+        deadline = time.monotonic() + budget
+        if self._on_loop(self._begin_enable, budget):
+            with self._arm_reconnect:
+                try:
+                    self._reconnect_arm()
+                finally:
+                    self._arm_busy = False
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise MmctlError(f"refused to enable: the arm's reconnect took longer than "
+                             f"{budget:g} s (daemon.command_timeout or the client's timeout)")
+        return cast("dict[str, Any]", self._on_loop(self._enable, left))
+
+    def _begin_enable(self) -> bool:
+        """Loop thread: whether the enable must reconnect the arm first (then the loop
+        leaves the arm to the reconnect from now on)."""
+        if self.safety.armed or not (self.safety.active.keys() & _ARM_RECONNECT_CAUSES):
+            return False
+        self._arm_busy = True
+        return True
+
     def _enable(self) -> dict[str, Any]:
         """Operator re-arm (loop thread).
 
-        Conditions other than the base's must be gone (else EnableRefused).  The base
-        latches its faults until ``enable()`` resets them, so it is enabled first and
-        its health re-checked: a drive still faulty or silent refuses the enable.
+        Conditions other than the base's must be gone (else EnableRefused); the arm is
+        judged on a fresh read.  The base latches its faults until ``enable()`` resets
+        them, so it is enabled first and its health re-checked: a drive still faulty or
+        silent refuses the enable.
         """
         if self.safety.armed:
             return self.status()
@@ -349,11 +396,16 @@ class Daemon:
         if self.core.taring:
             raise MmctlError("refused to enable: a tare is in progress (the handle must not "
                              "be touched until it ends)")
-        other = {c: d for c, d in self.safety.active.items() if c not in _BASE_CAUSES}
+        other = {c: d for c, d in self.safety.active.items()
+                 if c not in _BASE_CAUSES and not c.value.startswith("arm_")}
         if self.loop.consecutive_misses == 0:
             other.pop(FaultCause.LOOP_OVERRUN, None)  # on time again; counters reset below
-        if other.keys() & _ARM_RECONNECT_CAUSES:
-            other = self._reconnect_arm(other)
+        try:
+            self.devices.arm.read_state()
+        except SafetyFault as exc:
+            other[exc.cause] = {"device": "arm", **exc.details}
+        except TransportError as exc:
+            other[FaultCause.ARM_DISCONNECTED] = {"device": "arm", "error": str(exc)}
         if other:
             self.safety.enable(other)  # raises EnableRefused naming them
         try:
@@ -379,21 +431,18 @@ class Daemon:
         self._update_status()
         return self.status()
 
-    def _reconnect_arm(self, conditions: dict[FaultCause, dict[str, Any]]
-                       ) -> dict[FaultCause, dict[str, Any]]:
-        """Enable after a lost link / stopped program: reconnect the arm (re-uploads the
-        control script; blocks ~1-2 s while disarmed) and re-judge it with a fresh read."""
-        log.info("arm_reconnecting", causes=sorted(c.value for c in conditions))
+    def _reconnect_arm(self) -> None:
+        """Enable after a lost link / stopped program (off the loop thread, the loop
+        leaving the arm alone): reconnect, which re-uploads the control script (~1-2 s;
+        ur_rtde's constructors and destructors hold the GIL for parts of it)."""
+        log.info("arm_reconnecting",
+                 causes=sorted(c.value for c in self.safety.active if c.value.startswith("arm_")))
         try:
             self.devices.arm.reconnect()
         except (MmctlError, OSError) as exc:
+            log.warning("arm_reconnect_failed", error=str(exc))
             raise MmctlError(f"refused to enable: the arm did not reconnect ({exc})") from None
-        left = {c: d for c, d in conditions.items() if not c.value.startswith("arm_")}
-        try:
-            self.devices.arm.read_state()
-        except SafetyFault as exc:
-            left[exc.cause] = {"device": "arm", **exc.details}
-        return left
+        log.info("arm_reconnected")
 
     def _disable(self) -> dict[str, Any]:
         if self.safety.disable():
@@ -474,7 +523,11 @@ class Daemon:
     def _cycle(self, tick: Tick) -> None:
         conditions: dict[FaultCause, dict[str, Any]] = {}
         dev = self.devices
-        arm = self._read("arm", dev.arm.read_state, conditions)
+        if self._arm_busy:
+            conditions[FaultCause.ARM_DISCONNECTED] = {"device": "arm", "why": "reconnecting"}
+            arm = None
+        else:
+            arm = self._read("arm", dev.arm.read_state, conditions)
         wrench = self._read("sensor", dev.sensor.read, conditions)
         odom = self._read("base", dev.base.read_odometry, conditions)
         if tick.overrun:
@@ -504,7 +557,7 @@ class Daemon:
         moved = False
         if not stop_now and self.safety.armed and result is not None:
             moved = self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
-        if not moved:
+        if not moved and not self._arm_busy:
             self._kick_arm_watchdog()
         if not conditions and dev.connected and not self._healthy_cycle.is_set():
             self._healthy_cycle.set()  # once: Event.set takes a lock and notifies
@@ -557,7 +610,8 @@ class Daemon:
                 log.warning("arm_watchdog_kick_failed", error=str(exc), suppressed=suppressed)
 
     def _send_stop(self) -> None:
-        self.devices.stop(self.cfg.arm.stop_deceleration, disable_base=True)
+        self.devices.stop(self.cfg.arm.stop_deceleration, disable_base=True,
+                          arm=not self._arm_busy)
         self._base_enabled = False
         self.commands_sent["stop"] += 1
 
@@ -616,6 +670,17 @@ class Daemon:
 def _round(v: Any, nd: int = 5) -> list[float]:
     return [round(float(x), nd) if math.isfinite(float(x)) else float("nan")
             for x in np.asarray(v).ravel()]
+
+
+def _budget(req: Mapping[str, Any], default: float) -> float:
+    """How long [s] a command may take: ``default``, shortened to 80 % of the client's
+    own ``timeout_s`` when it sends one (the rest is its margin for the reply), so a
+    client never reports a failure that the daemon then carries out."""
+    client = req.get("timeout_s")
+    if isinstance(client, (int, float)) and not isinstance(client, bool) \
+            and math.isfinite(client) and client > 0:
+        return min(default, 0.8 * float(client))
+    return default
 
 
 def _arg(req: Mapping[str, Any], key: str, typ: type) -> Any:

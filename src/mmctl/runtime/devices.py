@@ -73,18 +73,19 @@ class Devices:
             self.close()
             raise
 
-    def stop(self, arm_deceleration: float, disable_base: bool = True) -> list[str]:
+    def stop(self, arm_deceleration: float, disable_base: bool = True,
+             arm: bool = True) -> list[str]:
         """Zero the base, speedStop the arm, then disable the base; every step is tried.
 
         The base's zero target (RPDOs + SYNC) goes first: it never waits, while the
-        arm's speedStop waits for the controller's handshake.  Returns the names of the
+        arm's speedStop waits for the controller's handshake.  ``arm=False`` leaves the
+        arm out (a reconnect owns it; nothing it runs moves).  Returns the names of the
         steps that failed (each logged); never raises.
         """
         failed: list[str] = []
-        steps: list[tuple[str, Callable[[], None]]] = [
-            ("base.stop", self.base.stop),
-            ("arm.stop", lambda: self.arm.stop(arm_deceleration)),
-        ]
+        steps: list[tuple[str, Callable[[], None]]] = [("base.stop", self.base.stop)]
+        if arm:
+            steps.append(("arm.stop", lambda: self.arm.stop(arm_deceleration)))
         if disable_base:
             steps.append(("base.disable", self.base.disable))
         for name, fn in steps:
@@ -96,9 +97,10 @@ class Devices:
                           cause=getattr(exc, "cause", None))
         return failed
 
-    def close(self) -> None:
-        """Close every device (idempotent, errors logged)."""
-        for name in ("base", "sensor", "arm"):
+    def close(self, arm: bool = True) -> None:
+        """Close every device (idempotent, errors logged); ``arm=False`` leaves the arm
+        open (a reconnect still owns it)."""
+        for name in ("base", "sensor", "arm")[:None if arm else 2]:
             try:
                 getattr(self, name).close()
             except (MmctlError, OSError, RuntimeError) as exc:

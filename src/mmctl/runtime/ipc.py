@@ -315,7 +315,9 @@ class ControlClient:
 
     def call(self, cmd: str, **args: Any) -> Any:
         """One request; returns ``result`` or raises :class:`IpcError` with the daemon's error."""
-        reply = self.raw(json.dumps({"cmd": cmd, **args}).encode())
+        # timeout_s: the daemon finishes (or abandons) the command within this client's
+        # patience, so a reply that never arrives never means "done later"
+        reply = self.raw(json.dumps({"cmd": cmd, "timeout_s": self.timeout, **args}).encode())
         if not reply.get("ok"):
             raise IpcError(str(reply.get("error", "unknown error")))
         return reply.get("result")

@@ -35,7 +35,9 @@ shape this module:
 * its constructors block (holding the GIL) on an unreachable host and forever on a
   controller that accepts but never streams: :meth:`UrRtdeArm.connect` first checks
   the dashboard and RTDE ports with plain sockets and a timeout;
-* each interface's destructor sleeps 0.5 s with the GIL held: ``close()`` costs ~1 s;
+* each interface's destructor sleeps 0.5 s with the GIL held, after ``disconnect()``
+  too (which sleeps 0.5 s with the GIL released): ``close()`` disconnects both and
+  never destroys them (a reconnect would otherwise stall the loop thread for 1 s);
 * a write that fails inside speedJ makes ur_rtde reconnect synchronously; when that
   fails too, speedJ raises (reported here as ARM_DISCONNECTED).  If the controller
   resets the connection (its process died, the host is up), that synchronous reconnect
@@ -188,28 +190,39 @@ class UrRtdeArm:
     def close(self) -> None:
         """speedStop and stopScript if the link is healthy, then disconnect (idempotent).
 
-        Costs ~1 s: each ur_rtde destructor sleeps 0.5 s (holding the GIL).
+        Never runs ur_rtde's destructors: each sleeps 0.5 s holding the GIL (the loop
+        thread would stall that long) even after ``disconnect()``, which sleeps as long
+        but releases the GIL.  So both interfaces are disconnected explicitly, then kept
+        alive for good (:func:`_park`: a few kB per reconnect, which is an operator's
+        action).  A stream that is silent is not even disconnected (ur_rtde would block
+        in it), only parked.  Costs ~1 s, the GIL free for all but a few ms.
         """
-        if self._ctrl is None and self._recv is None:
+        ctrl, recv = self._ctrl, self._recv
+        if ctrl is None and recv is None:
             return
+        fresh = self._fresh()
+        self._ctrl = self._recv = None  # nothing of this link is used from here on
+        self._healthy = False
         try:
-            if self._fresh():
-                if not self._ctrl.speedStop(self.config.stop_deceleration):
+            if fresh:
+                if not ctrl.speedStop(self.config.stop_deceleration):
                     log.warning("arm_speed_stop_refused", host=self.host)
-                self._ctrl.stopScript()
-            elif self._stream_silent():
-                for interface in (self._ctrl, self._recv):
-                    if interface is not None:
-                        _park(interface)
+                ctrl.stopScript()
+            if self._stream_silent():
                 log.warning("arm_interfaces_parked", host=self.host,
                             why="the controller accepts RTDE clients but streams nothing; "
-                            "destroying ur_rtde's interfaces now would block or hang")
+                            "disconnecting ur_rtde's interfaces now would block or hang")
+            else:
+                for interface in (ctrl, recv):
+                    if interface is not None:
+                        interface.disconnect()  # the GIL released while it sleeps
         except RuntimeError as exc:
             log.warning("arm_close_stop_failed", host=self.host, why=str(exc))
         finally:
-            self._healthy = False
+            for interface in (ctrl, recv):
+                if interface is not None:
+                    _park(interface)
             self.watchdog_on = False
-            self._ctrl = self._recv = None  # ur_rtde's destructors disconnect
             log.info("arm_closed", host=self.host)
 
     def __enter__(self) -> Self:
@@ -455,11 +468,11 @@ _PARKED: list[Any] = []
 
 
 def _park(interface: Any) -> None:
-    """Keep a ur_rtde interface alive for good.  Its destructor would join a receive
-    thread blocked up to 2.5 s in a read (receive interface) or stuck in ur_rtde's own
-    reconnect, which waits without a timeout for a first sample from a controller that
-    streams nothing (control interface), hanging the process with the GIL held.  The
-    extra reference makes sure it is not finalised at interpreter exit either."""
+    """Keep a ur_rtde interface alive for good: its destructor sleeps 0.5 s with the GIL
+    held (after a disconnect too), and on a controller that streams nothing it joins a
+    receive thread blocked in a read, or in ur_rtde's own reconnect, which waits without
+    a timeout for a first sample (hanging the process, the GIL held).  The extra
+    reference makes sure it is not finalised at interpreter exit either."""
     _PARKED.append(interface)
     ctypes.pythonapi.Py_IncRef(ctypes.py_object(interface))
 
