@@ -26,6 +26,7 @@ def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Base, Any]]:
         "canopen": {"channel": f"contract-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 5.0,
                     "sdo_timeout": 5.0},
         "serial": {"link_timeout": 5.0, "timeout": 1.0},
+        "command_watchdog": 2.0,  # a stalled test is not a dead master
     }})
     fake: Any = FakeDrives(cfg) if request.param == "canopen" else FakeSerialBridge(cfg)
     with fake:

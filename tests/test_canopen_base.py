@@ -26,12 +26,12 @@ from mmctl.types import Odometry
 PERIOD = 0.002  # [s], the 500 Hz control period
 
 
-def make_cfg(**canopen: object) -> Config:
+def make_cfg(command_watchdog: float = 2.0, **canopen: object) -> Config:
     """A config on a channel of its own; generous timeouts unless given (a loaded test
-    machine must not look like a dead drive)."""
+    machine must not look like a dead drive, nor a stalled test like a dead master)."""
     co = {"channel": f"test-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 5.0,
           "sdo_timeout": 5.0, **canopen}
-    return config_from_dict({"base": {"canopen": co}})
+    return config_from_dict({"base": {"canopen": co, "command_watchdog": command_watchdog}})
 
 
 def wait_until(pred: Callable[[], bool], timeout: float = 20.0) -> None:
@@ -123,12 +123,13 @@ def test_commanded_velocities_reach_the_drives_0x60ff(
     cycles(base, twist, 5)
     want = counts(cfg, wheel_matrix(cfg.base.mecanum) @ np.array(twist))
     ids = cfg.base.canopen.node_ids
-    # the zero target enable() sends, then the 5 cycles
-    wait_until(lambda: all(len(fakes.command_log(nid)) >= 6 for nid in ids))
+    # the zero targets enable() sends (before the state machine and once every drive is
+    # enabled, which starts the RPDO deadline), then the 5 cycles
+    wait_until(lambda: all(len(fakes.command_log(nid)) >= 7 for nid in ids))
     wait_until(lambda: fakes.target_counts() == want)
     assert len(set(want)) == 4  # four different wheel speeds, each at its own drive
     for nid, c in zip(ids, want):
-        assert [v for _, v in fakes.command_log(nid)] == [0] + [c] * 5
+        assert [v for _, v in fakes.command_log(nid)] == [0, 0] + [c] * 5
 
 
 def test_send_twist_is_scaled_to_the_wheel_limit_keeping_direction(
@@ -184,7 +185,8 @@ def test_stop_commands_zero(cfg: Config, fakes: FakeDrives, base: CanopenBase) -
 def test_drive_without_commands_ramps_to_zero(fakes: FakeDrives, base: CanopenBase) -> None:
     cycles(base, (0.4, 0.0, 0.0), 30)
     wait_until(lambda: bool(np.all(np.abs(fakes.wheel_velocities()) > 0.5)))
-    # no more RPDOs: after base.command_watchdog (0.2 s) the drives ramp down by themselves
+    # no more RPDOs: after base.command_watchdog the drives quick-stop by themselves
+    # (their RPDO deadline 0x1400:05; the master's heartbeat still runs)
     wait_until(lambda: bool(np.all(fakes.wheel_velocities() == 0.0)))
     assert all(c != 0 for c in fakes.target_counts())  # 0x60FF still holds the old target
 
@@ -217,7 +219,8 @@ def test_drive_fault_is_detected_and_reset_on_enable(
     print(f"\ndrive fault detected by per-cycle call #{calls + 1} after the injection, "
           f"{n_sync} SYNC cycles, {ms:.1f} ms")
     assert fault.cause is FaultCause.DRIVE_FAULT
-    assert fault.details["node_id"] == 2 and fault.details["state"] == "FAULT"
+    assert fault.details["node_id"] == 2
+    assert fault.details["state"] in ("FAULT REACTION ACTIVE", "FAULT")  # seen at once
     assert fault.details["error_code"] == "0x2310"
     assert n_sync <= 50  # far inside the heartbeat timeout: the statusword TPDO is an event
     with pytest.raises(SafetyFault):  # latched
@@ -230,7 +233,7 @@ def test_drive_fault_is_detected_and_reset_on_enable(
 
 
 def test_silent_drive_is_detected_within_the_heartbeat_timeout() -> None:
-    cfg = make_cfg(heartbeat_timeout=0.1)  # the default
+    cfg = make_cfg(heartbeat_timeout=0.1, sdo_timeout=1.0)  # the default; shorter SDO wait
     hb = cfg.base.canopen
     with FakeDrives(cfg) as fakes:
         base = CanopenBase(cfg.base, cfg.limits)
@@ -253,7 +256,16 @@ def test_silent_drive_is_detected_within_the_heartbeat_timeout() -> None:
             assert elapsed >= hb.heartbeat_timeout - hb.heartbeat_period
             assert [d.link for d in base.drive_status()][2] == "SILENT"
             base.stop()
-            base.disable()  # skips the silent drive instead of waiting for its SDO timeout
+            # disable() tries every drive: the silent one costs its SDO timeout, is named
+            with pytest.raises(TransportError, match=r"drive\(s\) 3 cannot be disabled"):
+                base.disable()
+            states = fakes.states()
+            assert [s.state for i, s in enumerate(states) if i != 2] == \
+                ["READY TO SWITCH ON"] * 3
+            # the silent drive hears nothing either: its own watchdog stopped it
+            wait_until(lambda: fakes.states()[2].state == "SWITCH ON DISABLED")
+            assert fakes.wheel_velocities()[2] == 0.0
+            assert any(what == "heartbeat consumer timeout" for _, what in fakes.event_log(3))
             fakes.resume(3)
             wait_until(lambda: base.drive_status()[2].link == "OPERATIONAL")
             base.enable()

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Literal
 
 from mmctl.config.schema import param, section, sub
+from mmctl.errors import ConfigError
 
 
 @section
@@ -33,6 +34,12 @@ class CanopenConfig:
     counts_per_rev: int = param(4096, gt=0, doc="encoder counts per wheel revolution")
     sdo_timeout: float = param(0.5, unit="s", gt=0.0)
     master_node_id: int = param(127, ge=1, le=127, doc="node id of our heartbeat producer")
+    stop_timeout: float = param(
+        2.0, unit="s", gt=0.0, le=60.0,
+        doc="the longest a drive may take to bring its wheel to rest (shutdown, quick stop "
+        "or fault reaction ramp): disable() and enable() wait at most this long; at least "
+        "limits.wheel_velocity / (limits.base_linear_acceleration / wheel_radius)",
+    )
 
 
 @section
@@ -55,4 +62,18 @@ class BaseConfig:
     mecanum: MecanumConfig = sub(MecanumConfig)
     canopen: CanopenConfig = sub(CanopenConfig)
     serial: SerialConfig = sub(SerialConfig)
-    command_watchdog: float = param(0.2, unit="s", gt=0.0, doc="drives stop without commands")
+    command_watchdog: float = param(
+        0.2, unit="s", gt=0.0, le=65.535,
+        doc="each drive quick-stops by itself when the master's heartbeat (consumer "
+        "heartbeat 0x1016) or the target RPDO (deadline 0x1400:05) is missing this long",
+    )
+
+    def validate(self, path: str, source: str | None) -> None:
+        hb = self.canopen.heartbeat_period
+        if self.command_watchdog < 2.0 * hb:
+            key = f"{path}.command_watchdog" if path else "command_watchdog"
+            raise ConfigError(
+                key, self.command_watchdog,
+                f"must be at least 2 x base.canopen.heartbeat_period = {2.0 * hb:g} s "
+                "(the drives watch the master's heartbeat with it)", source,
+            )

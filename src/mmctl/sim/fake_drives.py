@@ -54,20 +54,35 @@ log = structlog.get_logger(__name__)
 Vec = NDArray[np.float64]
 _SUBSTEP = 0.001  # plant integration step [s]
 _ABORT_VALUE_RANGE = 0x0609_0030
+#: Coasting wheel (power stage off): viscous time constant [s] and dry friction [rad/s^2].
+COAST_TIME_CONSTANT = 1.0
+COAST_FRICTION = 1.0
 
 
 class WheelPlant:
     """Four wheels (FL, FR, BL, BR) and the base pose they drive. Thread-safe.
 
-    Each wheel's speed [rad/s] moves toward its effective target at ``accel`` (speeding
-    up) or ``decel`` (slowing down) [rad/s^2]; the effective target is 0 while the
-    wheel is disabled or ``watchdog`` [s] after its last command.  The pose (x, y [m],
+    Each wheel is in one of three modes:
+
+    * tracking (``enabled``): its speed [rad/s] moves toward its target at ``accel``
+      (speeding up) or ``decel`` (slowing down) [rad/s^2]; with a ``watchdog`` [s]
+      (None: none), the target is 0 once the wheel had no command for that long;
+    * ramping to rest (:meth:`ramp_to_rest`): power stage on, speed toward 0 at the
+      given deceleration, then held at 0;
+    * coasting (:meth:`power_off`): power stage off, the wheel runs free and slows only
+      by friction: ``d|w|/dt = -|w| / COAST_TIME_CONSTANT - COAST_FRICTION`` (a model:
+      a free mecanum wheel under the base's weight; at rest after
+      ``tau ln(1 + |w0| / (mu tau))``, 1.9 s from 5.4 rad/s).
+
+    ``enabled`` False without a mode (:meth:`set_enabled`, the serial bridge's
+    switch) ramps to zero at ``decel``.  Every switch to coasting is logged in
+    :attr:`power_offs` with the wheel's speed at that instant.  The pose (x, y [m],
     yaw [rad], world frame) integrates the least-squares base twist of the wheel
     increments.  Time is ``time.monotonic()``; the state advances lazily to the time
     of each call.
     """
 
-    def __init__(self, geom: MecanumConfig, accel: float, watchdog: float) -> None:
+    def __init__(self, geom: MecanumConfig, accel: float, watchdog: float | None) -> None:
         self._p = odometry_matrix(geom)
         self.lock = threading.RLock()
         self.theta = np.zeros(4)
@@ -76,26 +91,43 @@ class WheelPlant:
         self.enabled = np.zeros(4, dtype=bool)
         self.accel = np.full(4, float(accel))
         self.decel = np.full(4, float(accel))
+        self.stop_decel = np.full(4, math.nan)  # ramping to rest at this [rad/s^2]
+        self.coasting = np.zeros(4, dtype=bool)
         self.last_command = np.full(4, -math.inf)
-        self.watchdog = float(watchdog)
+        self.watchdog = watchdog
         self.pose = np.zeros(3)
         self.t = time.monotonic()
+        #: (monotonic time [s], wheel, speed [rad/s]) at each switch to coasting
+        self.power_offs: deque[tuple[float, int, float]] = deque(maxlen=1000)
 
     def advance(self, now: float) -> None:
         """Integrate up to monotonic time ``now`` [s] in steps of at most 1 ms."""
         with self.lock:
             while self.t < now:
                 h = min(_SUBSTEP, now - self.t)
-                expiry = self.last_command + self.watchdog
-                pending = expiry[(expiry > self.t) & (expiry < self.t + h)]
-                if pending.size:
-                    h = max(float(pending.min()) - self.t, 1e-9)
-                live = self.enabled & (self.t < expiry)
+                if self.watchdog is not None:
+                    expiry = self.last_command + self.watchdog
+                    pending = expiry[(expiry > self.t) & (expiry < self.t + h)]
+                    if pending.size:
+                        h = max(float(pending.min()) - self.t, 1e-9)
+                    live = self.enabled & (self.t < expiry)
+                else:
+                    live = self.enabled
                 tgt = np.where(live, self.target, 0.0)
                 dv = tgt - self.omega
                 slowing = dv * self.omega < 0.0
-                rate = np.where(slowing, self.decel, self.accel) * h
+                rate = np.where(slowing, self.decel, self.accel)
+                ramping = ~np.isnan(self.stop_decel)
+                if ramping.any():
+                    rate = np.where(ramping, self.stop_decel, rate)
+                    dv = np.where(ramping, -self.omega, dv)
+                rate = rate * h
                 new = self.omega + np.clip(dv, -rate, rate)
+                if self.coasting.any():
+                    mu_tau = COAST_FRICTION * COAST_TIME_CONSTANT
+                    free = np.maximum((np.abs(self.omega) + mu_tau)
+                                      * math.exp(-h / COAST_TIME_CONSTANT) - mu_tau, 0.0)
+                    new = np.where(self.coasting, np.sign(self.omega) * free, new)
                 dtheta = 0.5 * (self.omega + new) * h
                 self.omega = new
                 self.theta += dtheta
@@ -113,10 +145,48 @@ class WheelPlant:
             self.last_command[wheel] = now
 
     def set_enabled(self, wheel: int, on: bool, now: float) -> None:
-        """Power stage on/off (off ramps to zero at the deceleration)."""
+        """Power stage on/off, the serial bridge's way (off ramps to zero at the
+        deceleration; it never coasts)."""
         with self.lock:
             self.advance(now)
             self.enabled[wheel] = on
+            self.stop_decel[wheel] = math.nan
+            self.coasting[wheel] = False
+
+    def track(self, wheel: int, now: float) -> None:
+        """Power stage on, the wheel follows its target."""
+        with self.lock:
+            self.advance(now)
+            self.enabled[wheel] = True
+            self.stop_decel[wheel] = math.nan
+            self.coasting[wheel] = False
+
+    def ramp_to_rest(self, wheel: int, decel: float, now: float) -> None:
+        """Power stage on, speed to 0 at ``decel`` [rad/s^2], then held at 0."""
+        with self.lock:
+            self.advance(now)
+            self.enabled[wheel] = False
+            self.stop_decel[wheel] = max(float(decel), 1e-9)
+            self.coasting[wheel] = False
+
+    def power_off(self, wheel: int, now: float) -> None:
+        """Power stage off: the wheel coasts (logged in :attr:`power_offs`)."""
+        with self.lock:
+            self.advance(now)
+            if not self.coasting[wheel]:
+                self.power_offs.append((now, wheel, float(self.omega[wheel])))
+            self.enabled[wheel] = False
+            self.stop_decel[wheel] = math.nan
+            self.coasting[wheel] = True
+
+    def rest_time(self, wheel: int) -> float:
+        """While ramping to rest: how long until the wheel is at rest [s] (else inf)."""
+        with self.lock:
+            rate = float(self.stop_decel[wheel])
+            w = abs(float(self.omega[wheel]))
+            if math.isnan(rate):
+                return math.inf
+            return w / rate
 
     def get_pose(self, now: float) -> tuple[float, float, float]:
         """(x, y [m], yaw [rad]) at ``now``."""
@@ -130,11 +200,24 @@ def _maps(pdos: Any) -> list[PdoMap]:
     return list(pdos.map.values())
 
 
-def _read(node: canopen.LocalNode, index: int) -> int:
+def _read(node: canopen.LocalNode, index: int, subindex: int = 0) -> int:
     """An integer object of ``node``'s dictionary (through its read callbacks)."""
-    var = node.object_dictionary.get_variable(index)
-    assert var is not None, f"0x{index:04X} is not a variable"
-    return int(var.decode_raw(node.get_data(index, 0)))
+    var = node.object_dictionary.get_variable(index, subindex)
+    assert var is not None, f"0x{index:04X}:{subindex} is not a variable"
+    return int(var.decode_raw(node.get_data(index, subindex)))
+
+
+S = ds.Cia402State
+#: Option codes the simulated drives accept (others: SDO abort "value range").
+_ACCEPTED: dict[int, frozenset[int]] = {
+    ds.ABORT_CONNECTION_OPTION: frozenset({0, 1, 2, 3}),
+    ds.QUICK_STOP_OPTION: frozenset({0, 1, 2, 5, 6}),
+    ds.SHUTDOWN_OPTION: frozenset({0, 1}),
+    ds.DISABLE_OPERATION_OPTION: frozenset({0, 1}),
+    ds.FAULT_REACTION_OPTION: frozenset({0, 1, 2}),
+}
+#: The supervisor thread sleeps at most this long between looks at the clock [s].
+_SUPERVISOR_NAP = 0.05
 
 
 @dataclass
@@ -143,7 +226,7 @@ class _Drive:
 
     wheel: int
     node: canopen.LocalNode
-    state: ds.Cia402State = ds.Cia402State.SWITCH_ON_DISABLED
+    state: ds.Cia402State = S.SWITCH_ON_DISABLED
     controlword: int = 0
     mode: int = 0
     error_code: int = 0
@@ -152,6 +235,23 @@ class _Drive:
     rpdo_pending: list[PdoMap] = field(default_factory=list)
     last_event: dict[int, bytes] = field(default_factory=dict)
     log: deque[tuple[float, int]] = field(default_factory=lambda: deque(maxlen=20_000))
+    #: while the wheel ramps to rest: the state entered once it is at rest
+    ramp_to: ds.Cia402State | None = None
+    #: consumer heartbeat (0x1016:01): producer node id, time [s]; last heartbeat seen
+    #: (None: monitoring not started, i.e. none received since configured or since the
+    #: last timeout)
+    hb_producer: int = 0
+    hb_time: float = 0.0
+    hb_last: float | None = None
+    #: RPDO deadline (0x1400+n:05) [s] per RPDO number n (0-based), loaded on NMT
+    #: start; last reception per RPDO (monitoring starts with the first one)
+    rpdo_no: dict[int, int] = field(default_factory=dict)
+    rpdo_timer: dict[int, float] = field(default_factory=dict)
+    rpdo_last: dict[int, float] = field(default_factory=dict)
+    #: EMCY code of a pending communication error (heartbeat / RPDO deadline), or 0
+    comm_error: int = 0
+    #: (monotonic time [s], event) of every watchdog event and state change
+    events: deque[tuple[float, str]] = field(default_factory=lambda: deque(maxlen=1000))
 
 
 class FakeDrives:
@@ -173,14 +273,27 @@ class FakeDrives:
         self.cfg = base
         self.node_ids: tuple[int, ...] = tuple(base.canopen.node_ids)
         self._counts_per_rad = base.canopen.counts_per_rev / (2.0 * math.pi)
-        self.plant = WheelPlant(base.mecanum, limits.base_linear_acceleration
-                                / base.mecanum.wheel_radius, base.command_watchdog)
+        od = ds.build_object_dictionary(1)
+        accel, decel = (od.get_variable(i) for i in (ds.PROFILE_ACCELERATION,
+                                                      ds.PROFILE_DECELERATION))
+        assert accel is not None and decel is not None
+        self._default_accel = int(accel.default or 1) / self._counts_per_rad  # [rad/s^2]
+        self._default_decel = int(decel.default or 1) / self._counts_per_rad
+        # no plant-side watchdog: the drives stop by their objects (0x1016, 0x1400:05)
+        self.plant = WheelPlant(base.mecanum, self._default_accel, None)
+        self.plant.decel[:] = self._default_decel
+        self.plant.coasting[:] = True  # power stages off (SWITCH ON DISABLED)
         self._lock = self.plant.lock
+        self._cond = threading.Condition(self._lock)
         self._network: canopen.Network | None = None
         self._drives: dict[int, _Drive] = {}
         self._sync_count = 0
         self._sync_time: float | None = None  # while handling a SYNC: its time
+        self._servicing = False
         self._error: BaseException | None = None
+        self._supervisor: threading.Thread | None = None
+        self._stopping = False
+        self._heartbeat_handler = self._guard(self._on_consumed_heartbeat)
 
     # -- lifecycle -------------------------------------------------------------------
 
@@ -197,6 +310,7 @@ class FakeDrives:
             node = canopen.LocalNode(nid, ds.build_object_dictionary(nid))
             net.add_node(node)
             drive = _Drive(wheel, node)
+            drive.rpdo_no = {id(pdo): no for no, pdo in enumerate(_maps(node.rpdo))}
             node.add_read_callback(self._guard(partial(self._on_read, drive)))
             node.add_write_callback(self._guard(partial(self._on_write, drive)))
             for pdo in _maps(node.rpdo):
@@ -207,11 +321,21 @@ class FakeDrives:
         for drive in self._drives.values():
             drive.node.nmt.send_command(0x81)  # reset: boot-up message
             drive.node.nmt.send_command(0x80)  # -> PRE-OPERATIONAL
+        self._stopping = False
+        self._supervisor = threading.Thread(target=self._supervise, name="fake-drives-timer",
+                                            daemon=True)
+        self._supervisor.start()
         log.info("fake_drives_started", channel=self.cfg.canopen.channel, node_ids=self.node_ids)
         return self
 
     def stop(self) -> None:
         """Stop heartbeats and leave the channel; re-raise an error a handler stored."""
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        if self._supervisor is not None:
+            self._supervisor.join(5.0)
+            self._supervisor = None
         net, self._network = self._network, None
         if net is not None:
             for drive in self._drives.values():
@@ -254,15 +378,37 @@ class FakeDrives:
         with self._lock:
             return list(self._drives[node_id].log)
 
-    def wheel_velocities(self) -> Vec:
-        """Actual simulated wheel speeds (4,) [rad/s] now."""
+    def event_log(self, node_id: int) -> list[tuple[float, str]]:
+        """The drive's watchdog events and state changes: (monotonic time [s], text),
+        e.g. ``"heartbeat consumer timeout"``, ``"rpdo1 deadline missed"``,
+        ``"state QUICK STOP ACTIVE"``, ``"reboot"``."""
         with self._lock:
-            self.plant.advance(time.monotonic())
+            return list(self._drives[node_id].events)
+
+    def power_offs(self) -> list[tuple[float, int, float]]:
+        """Every time a drive's power stage switched off: (monotonic time [s], node id,
+        wheel speed at that instant [rad/s])."""
+        with self._lock:
+            return [(t, self.node_ids[w], v) for t, w, v in self.plant.power_offs]
+
+    def wheel_velocities(self) -> Vec:
+        """Actual simulated wheel speeds (4,) [rad/s] now (watchdog events due by now
+        act at their deadlines first, so looking never changes the physics)."""
+        with self._lock:
+            self._service(time.monotonic())
             return self.plant.omega.copy()
+
+    def wheel_positions(self) -> Vec:
+        """Actual simulated wheel angles (4,) [rad] now (unwrapped)."""
+        with self._lock:
+            self._service(time.monotonic())
+            return self.plant.theta.copy()
 
     def pose(self) -> tuple[float, float, float]:
         """The simulated base pose (x, y [m], yaw [rad]) in the world frame, now."""
-        return self.plant.get_pose(time.monotonic())
+        with self._lock:
+            self._service(time.monotonic())
+            return self.plant.get_pose(time.monotonic())
 
     @property
     def sync_count(self) -> int:
@@ -272,6 +418,7 @@ class FakeDrives:
     def states(self) -> list[DriveStatus]:
         """Drive-side view: NMT state ('SILENT' when injected), CiA 402 state, statusword."""
         with self._lock:
+            self._service(time.monotonic())
             out = []
             for d in self._drives.values():
                 sw = self._statusword(d)
@@ -283,21 +430,18 @@ class FakeDrives:
     # -- fault injection ----------------------------------------------------------------
 
     def inject_fault(self, node_id: int, code: int = 0x2310) -> None:
-        """Drive ``node_id`` enters FAULT (EMCY ``code``, default 0x2310 over-current;
-        statusword TPDO sent at once); it ramps to zero."""
+        """Drive ``node_id`` detects a fault (EMCY ``code``, default 0x2310 over-current):
+        FAULT REACTION ACTIVE while its wheel comes to rest as the fault reaction option
+        code 0x605E says (default: on the quick-stop ramp 0x6085), then FAULT; the
+        statusword TPDO goes out on each change."""
         with self._lock:
-            d = self._drives[node_id]
-            self._set_state(d, ds.Cia402State.FAULT)
-            d.error_code = code
-            if not d.silent and self._network is not None:
-                d.node.emcy.send(code, register=0x01)
-                self._emit_events(d)
+            self._fault(self._drives[node_id], code, time.monotonic())
         log.info("fake_drive_fault_injected", node_id=node_id, code=f"0x{code:04X}",
                  sync_count=self._sync_count)
 
     def inject_silence(self, node_id: int) -> None:
         """Drive ``node_id`` goes silent: no heartbeat, no TPDO, no SDO answer, and it
-        ignores everything it receives (its watchdog then ramps it to zero)."""
+        ignores everything it receives (so its own watchdog, if configured, stops it)."""
         with self._lock:
             d = self._drives[node_id]
             d.silent = True
@@ -316,7 +460,20 @@ class FakeDrives:
             self._network.subscribe(0x600 + node_id, d.node.sdo.on_request)
             d.node.nmt.start_heartbeat(_read(d.node, ds.PRODUCER_HEARTBEAT_TIME))
 
-    # -- CAN handlers (run in the network's receive thread) -----------------------------
+    def reboot(self, node_id: int) -> None:
+        """Drive ``node_id`` restarts (a power glitch, a watchdog reset): its power stage
+        switches off at once (the wheel coasts), every object returns to its default
+        (PDO mappings, heartbeat producer 0 = off, watchdog and option codes, modes,
+        ramps), it sends its boot-up message and waits in NMT PRE-OPERATIONAL, SWITCH ON
+        DISABLED.  A silent drive comes back talking."""
+        with self._lock:
+            d = self._drives[node_id]
+            if d.silent:
+                self.resume(node_id)
+            self._reboot(d, time.monotonic())
+        log.info("fake_drive_rebooted", node_id=node_id, sync_count=self._sync_count)
+
+    # -- the drive's behaviour ------------------------------------------------------------
 
     def _guard(self, fn: Callable[..., Any]) -> Callable[..., Any]:
         """Store (and log) the first exception of a handler; SDO aborts pass through."""
@@ -338,15 +495,208 @@ class FakeDrives:
         reached = bool(abs(self.plant.omega[d.wheel] - self.plant.target[d.wheel]) < 1e-3)
         return ds.encode_statusword(d.state, target_reached=reached)
 
-    def _set_state(self, d: _Drive, state: ds.Cia402State) -> None:
+    def _note(self, d: _Drive, now: float, what: str) -> None:
+        d.events.append((now, what))
+
+    def _set_state(self, d: _Drive, state: ds.Cia402State, now: float) -> None:
+        """Enter ``state``: the power stage follows (OPERATION ENABLED: on, tracking the
+        target; QUICK STOP ACTIVE / FAULT REACTION ACTIVE: as their ramp set it;
+        any other state: off, the wheel coasts); statusword TPDO on change."""
+        if state is S.OPERATION_ENABLED:
+            self.plant.track(d.wheel, now)
+        elif state not in (S.QUICK_STOP_ACTIVE, S.FAULT_REACTION_ACTIVE):
+            d.ramp_to = None
+            self.plant.power_off(d.wheel, now)
         if state is not d.state:
             d.state = state
-            self.plant.set_enabled(d.wheel, state is ds.Cia402State.OPERATION_ENABLED,
-                                   time.monotonic())
+            self._note(d, now, f"state {state.value}")
+            self._emit_events(d)
+
+    def _ramp(self, d: _Drive, decel_index: int, then: ds.Cia402State, now: float) -> None:
+        """Bring the wheel to rest on the deceleration ``decel_index`` (0x6084 or 0x6085)
+        with the power stage on; once at rest the drive enters ``then``."""
+        decel = max(_read(d.node, decel_index), 1) / self._counts_per_rad
+        self.plant.ramp_to_rest(d.wheel, decel, now)
+        d.ramp_to = then
+        self._cond.notify_all()
+
+    def _quick_stop(self, d: _Drive, now: float) -> None:
+        """OPERATION ENABLED -> QUICK STOP ACTIVE, stopping as 0x605A says."""
+        option = _read(d.node, ds.QUICK_STOP_OPTION)
+        if option == ds.QUICK_STOP_COAST:
+            self._set_state(d, S.SWITCH_ON_DISABLED, now)
+            return
+        decel = (ds.PROFILE_DECELERATION if option in (ds.QUICK_STOP_SLOW_DOWN_RAMP,
+                                                       ds.QUICK_STOP_SLOW_DOWN_RAMP_STAY)
+                 else ds.QUICK_STOP_DECELERATION)
+        stay = option in (ds.QUICK_STOP_SLOW_DOWN_RAMP_STAY, ds.QUICK_STOP_QUICK_STOP_RAMP_STAY)
+        self._ramp(d, decel, S.QUICK_STOP_ACTIVE if stay else S.SWITCH_ON_DISABLED, now)
+        self._set_state(d, S.QUICK_STOP_ACTIVE, now)
+
+    def _fault(self, d: _Drive, code: int, now: float) -> None:
+        """A fault: EMCY, FAULT REACTION ACTIVE (the 0x605E reaction while the power
+        stage is on), then FAULT."""
+        if d.state in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+            return
+        d.error_code = code
+        if not d.silent and self._network is not None:
+            d.node.emcy.send(code, register=0x01)
+        powered = d.state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE)
+        option = _read(d.node, ds.FAULT_REACTION_OPTION)
+        if not powered or option == ds.FAULT_REACTION_COAST:
+            self._set_state(d, S.FAULT_REACTION_ACTIVE, now)
+            self._set_state(d, S.FAULT, now)
+            return
+        decel = (ds.PROFILE_DECELERATION if option == ds.FAULT_REACTION_SLOW_DOWN_RAMP
+                 else ds.QUICK_STOP_DECELERATION)
+        self._ramp(d, decel, S.FAULT, now)
+        self._set_state(d, S.FAULT_REACTION_ACTIVE, now)
+
+    def _controlword(self, d: _Drive, value: int, now: float) -> None:
+        """The master wrote 0x6040: the CiA 402 transition, completed as the option
+        codes say (0x605B shutdown / 0x605C disable operation: at once, the motor
+        coasting, or after the slow-down ramp; quick stop per 0x605A)."""
+        new = ds.next_state(d.state, value, d.controlword)
+        d.controlword = value
+        if new is d.state:
+            return
+        old = d.state
+        if d.ramp_to is not None and old is S.OPERATION_ENABLED:
+            # a shutdown / disable-operation ramp runs: only a quick stop or a
+            # disable voltage (power off at once) changes it
+            if new is S.QUICK_STOP_ACTIVE:
+                self._quick_stop(d, now)
+            elif new is S.SWITCH_ON_DISABLED:
+                self._set_state(d, new, now)
+            return
+        if old is S.OPERATION_ENABLED and new in (S.READY_TO_SWITCH_ON, S.SWITCHED_ON):
+            option = _read(d.node, ds.SHUTDOWN_OPTION if new is S.READY_TO_SWITCH_ON
+                           else ds.DISABLE_OPERATION_OPTION)
+            if option == ds.STOP_OPTION_SLOW_DOWN_RAMP:
+                self._ramp(d, ds.PROFILE_DECELERATION, new, now)  # state shown: OE
+            else:
+                self._set_state(d, new, now)
+            return
+        if new is S.QUICK_STOP_ACTIVE:
+            self._quick_stop(d, now)
+            return
+        if old is S.FAULT:
+            d.error_code = 0
+            if not d.silent and self._network is not None:
+                d.node.emcy.reset()
+        if new is S.OPERATION_ENABLED:
+            d.ramp_to = None
+            if d.comm_error and not d.silent and self._network is not None:
+                d.comm_error = 0
+                d.node.emcy.reset()
+        self._set_state(d, new, now)
+
+    def _comm_event(self, d: _Drive, code: int, what: str, now: float) -> None:
+        """A consumer heartbeat timeout or an RPDO deadline miss: EMCY, then in
+        OPERATION ENABLED the abort connection option code 0x6007's action."""
+        self._note(d, now, what)
+        d.comm_error = code
+        if not d.silent and self._network is not None:
+            d.node.emcy.send(code, register=0x11)  # generic + communication error
+        if d.state is not S.OPERATION_ENABLED or d.ramp_to is not None:
+            return
+        action = _read(d.node, ds.ABORT_CONNECTION_OPTION)
+        if action == ds.ABORT_FAULT:
+            self._fault(d, code, now)
+        elif action == ds.ABORT_DISABLE_VOLTAGE:
+            self._set_state(d, S.SWITCH_ON_DISABLED, now)
+        elif action == ds.ABORT_QUICK_STOP:
+            self._quick_stop(d, now)
+
+    def _service(self, now: float) -> float:
+        """Everything due by ``now``: watchdog events (at their deadlines, in order),
+        ends of ramps.  Returns when the next thing is due (monotonic [s], inf: none)."""
+        if self._servicing:
+            return math.inf
+        self._servicing = True
+        try:
+            due: list[tuple[float, int, _Drive, int, str]] = []
+            for d in self._drives.values():
+                if d.hb_last is not None and d.hb_time > 0.0 \
+                        and now >= d.hb_last + d.hb_time:
+                    due.append((d.hb_last + d.hb_time, d.wheel, d, ds.EMCY_HEARTBEAT,
+                                "heartbeat consumer timeout"))
+                    d.hb_last = None
+                for no, last in list(d.rpdo_last.items()):
+                    limit = d.rpdo_timer.get(no, 0.0)
+                    if limit > 0.0 and now >= last + limit:
+                        due.append((last + limit, d.wheel, d, ds.EMCY_RPDO_TIMEOUT,
+                                    f"rpdo{no + 1} deadline missed"))
+                        del d.rpdo_last[no]
+            for t, _, d, code, what in sorted(due, key=lambda e: e[:2]):
+                self.plant.advance(t)
+                self._comm_event(d, code, what, max(t, self.plant.t))
+            self.plant.advance(now)
+            wake = math.inf
+            for d in self._drives.values():
+                if d.ramp_to is not None:
+                    if self.plant.omega[d.wheel] == 0.0:
+                        then, d.ramp_to = d.ramp_to, None
+                        self._note(d, now, "at rest")
+                        self._set_state(d, then, now)
+                    else:
+                        wake = min(wake, now + self.plant.rest_time(d.wheel) + _SUBSTEP)
+                if d.hb_last is not None and d.hb_time > 0.0:
+                    wake = min(wake, d.hb_last + d.hb_time)
+                for no, last in d.rpdo_last.items():
+                    if d.rpdo_timer.get(no, 0.0) > 0.0:
+                        wake = min(wake, last + d.rpdo_timer[no])
+            return wake
+        finally:
+            self._servicing = False
+
+    def _supervise(self) -> None:
+        """The drives' clock: watchdog deadlines and ramp ends, as they fall due."""
+        with self._cond:
+            while not self._stopping:
+                now = time.monotonic()
+                try:
+                    wake = self._service(now)
+                except Exception as exc:  # stored, re-raised by check()/stop()
+                    if self._error is None:
+                        self._error = exc
+                    log.exception("fake_drives_timer_failed")
+                    return
+                self._cond.wait(min(max(wake - now, 0.0002), _SUPERVISOR_NAP))
+
+    def _reboot(self, d: _Drive, now: float) -> None:
+        self._note(d, now, "reboot")
+        self.plant.power_off(d.wheel, now)
+        node = d.node
+        node.nmt.stop_heartbeat()
+        node.data_store.clear()  # every object back to its default
+        d.state = S.SWITCH_ON_DISABLED  # (NOT READY TO SWITCH ON, then at once this)
+        d.controlword = d.mode = d.error_code = d.comm_error = 0
+        d.ramp_to = None
+        d.hb_producer, d.hb_time, d.hb_last = 0, 0.0, None
+        d.rpdo_timer.clear()
+        d.rpdo_last.clear()
+        d.rpdo_pending.clear()
+        d.last_event.clear()
+        w = d.wheel
+        self.plant.accel[w] = self._default_accel
+        self.plant.decel[w] = self._default_decel
+        self.plant.target[w] = 0.0
+        if self._network is not None:
+            node.rpdo.read()  # the default mappings: every PDO invalid
+            node.tpdo.read()
+            d.pdo_dirty = True
+            node.nmt.send_command(0x81)  # INITIALISING: boot-up message
+            node.nmt.send_command(0x80)  # -> PRE-OPERATIONAL (heartbeat: 0x1017 = 0, off)
+
+    # -- CAN handlers (run in the network's receive thread) -----------------------------
 
     def _on_read(self, d: _Drive, index: int, subindex: int, od: Any) -> int | None:
         if index == ds.STATUSWORD:
-            return self._statusword(d)
+            with self._lock:
+                if self._sync_time is None:  # an SDO read: bring the drive up to now
+                    self._service(time.monotonic())
+                return self._statusword(d)
         if index in (ds.POSITION_ACTUAL, ds.VELOCITY_ACTUAL):
             if self._sync_time is None:  # an SDO read: now (on SYNC: already advanced)
                 self.plant.advance(time.monotonic())
@@ -357,7 +707,7 @@ class FakeDrives:
         if index == ds.ERROR_CODE:
             return d.error_code
         if index == ds.ERROR_REGISTER:
-            return 0x01 if d.error_code else 0
+            return (0x01 if d.error_code else 0) | (0x10 if d.comm_error else 0)
         if index == ds.MODES_OF_OPERATION_DISPLAY:
             return d.mode
         return None
@@ -369,15 +719,7 @@ class FakeDrives:
         now = time.monotonic() if self._sync_time is None else self._sync_time
         with self._lock:
             if index == ds.CONTROLWORD:
-                new = ds.next_state(d.state, value, d.controlword)
-                d.controlword = value
-                if new is not d.state:
-                    was_fault = d.state is ds.Cia402State.FAULT
-                    self._set_state(d, new)
-                    if was_fault:
-                        d.error_code = 0
-                        d.node.emcy.reset()
-                    self._emit_events(d)
+                self._controlword(d, value, now)
             elif index == ds.MODES_OF_OPERATION:
                 if value != ds.MODE_PROFILE_VELOCITY:
                     raise SdoAbortedError(_ABORT_VALUE_RANGE)
@@ -390,11 +732,39 @@ class FakeDrives:
             elif index == ds.PROFILE_DECELERATION:
                 self.plant.advance(now)
                 self.plant.decel[d.wheel] = max(value, 1) / self._counts_per_rad
+            elif index in _ACCEPTED:
+                if value not in _ACCEPTED[index]:
+                    raise SdoAbortedError(_ABORT_VALUE_RANGE)
+            elif index == ds.CONSUMER_HEARTBEAT_TIME and subindex == 1:
+                producer, ms = (value >> 16) & 0x7F, value & 0xFFFF
+                d.hb_producer, d.hb_time, d.hb_last = producer, ms / 1000.0, None
+                if producer and ms and self._network is not None:
+                    self._network.subscribe(0x700 + producer, self._heartbeat_handler)
             elif 0x1400 <= index <= 0x1BFF:
                 d.pdo_dirty = True
 
+    def _on_consumed_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        producer = can_id - 0x700
+        now = time.monotonic()
+        with self._lock:
+            for d in self._drives.values():
+                if d.silent or d.hb_producer != producer or d.hb_time <= 0.0:
+                    continue
+                first = d.hb_last is None
+                d.hb_last = now
+                if first:
+                    self._note(d, now, f"heartbeat consumer: node {producer} heard")
+                    self._cond.notify_all()
+
     def _on_nmt(self, d: _Drive, can_id: int, data: bytearray, timestamp: float) -> None:
-        if d.silent or d.node.nmt.state != "OPERATIONAL":
+        if d.silent:
+            return
+        if len(data) >= 2 and data[0] in (0x81, 0x82) and data[1] in (0, d.node.id):
+            with self._lock:
+                self._reboot(d, time.monotonic())  # reset node / communication: a reboot
+            return
+        if d.node.nmt.state != "OPERATIONAL":
+            d.rpdo_last.clear()  # no PDOs outside OPERATIONAL: no deadline either
             return
         with self._lock:
             if d.pdo_dirty:
@@ -402,17 +772,28 @@ class FakeDrives:
                 d.node.tpdo.read()
                 d.pdo_dirty = False
                 d.last_event.clear()
+                d.rpdo_last.clear()
+                d.rpdo_timer = {
+                    no: _read(d.node, 0x1400 + no, ds.EVENT_TIMER_SUBINDEX) / 1000.0
+                    for no, pdo in enumerate(_maps(d.node.rpdo)) if pdo.enabled}
             self._emit_events(d)
 
     def _on_rpdo(self, d: _Drive, pdo: PdoMap) -> None:
-        if d.silent or d.node.nmt.state != "OPERATIONAL":
+        if d.silent or d.node.nmt.state != "OPERATIONAL" or not pdo.enabled:
             return
         with self._lock:
+            now = time.monotonic()
+            no = d.rpdo_no.get(id(pdo), 0)
+            if d.rpdo_timer.get(no, 0.0) > 0.0:
+                first = no not in d.rpdo_last
+                d.rpdo_last[no] = now
+                if first:
+                    self._cond.notify_all()
             if pdo not in d.rpdo_pending:
                 d.rpdo_pending.append(pdo)
             for var in pdo.map:
                 if var.index == ds.TARGET_VELOCITY:
-                    d.log.append((time.monotonic(), int(var.raw)))
+                    d.log.append((now, int(var.raw)))
             if pdo.trans_type is not None and pdo.trans_type >= 254:
                 self._apply_rpdos(d)
 
@@ -426,7 +807,7 @@ class FakeDrives:
         with self._lock:
             self._sync_count += 1
             now = time.monotonic()
-            self.plant.advance(now)
+            self._service(now)
             # every drive applies its target and samples its encoder at the SYNC instant
             self._sync_time = now
             try:

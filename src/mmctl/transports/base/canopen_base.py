@@ -1,12 +1,22 @@
 """The base over CANopen: four CiA 402 drives, `canopen` as the master.
 
 Wire set-up (written by SDO at :meth:`CanopenBase.connect`, per drive, node ids from
-``base.canopen.node_ids`` in the order FL, FR, BL, BR):
+``base.canopen.node_ids`` in the order FL, FR, BL, BR; the objects that make a drive
+stop read back and checked):
 
 * 0x1017 producer heartbeat = ``heartbeat_period``; we consume it (silent for more
-  than ``heartbeat_timeout`` -> ``DRIVE_HEARTBEAT``) and produce our own heartbeat
-  (node ``master_node_id``, same period);
-* 0x6060 = 3 (profile velocity); 0x6083/0x6084 = the wheel acceleration
+  than ``heartbeat_timeout`` -> ``DRIVE_HEARTBEAT``; a boot-up message -> the drive
+  rebooted, ``DRIVE_FAULT``) and produce our own heartbeat (node ``master_node_id``,
+  same period);
+* the drive's own command watchdog, ``base.command_watchdog`` [ms]: consumer heartbeat
+  0x1016:01 = ``master_node_id << 16 | ms`` (our heartbeat), RPDO1 deadline (event
+  timer 0x1400:05) = ms, abort connection option 0x6007 = 3 (quick stop).  A drive that
+  misses either in OPERATION ENABLED quick-stops by itself (0x605A = 2: to rest on the
+  quick-stop deceleration 0x6085, then SWITCH ON DISABLED);
+* how a drive stops: shutdown option 0x605B = 1 and disable operation option 0x605C = 1
+  (slow down on 0x6084, then open the power stage: never while the wheel turns),
+  fault reaction 0x605E = 2 (quick-stop ramp, then FAULT);
+* 0x6060 = 3 (profile velocity); 0x6083/0x6084/0x6085 = the wheel acceleration
   ``limits.base_linear_acceleration / wheel_radius`` in [counts/s^2];
 * RPDO1 (COB-ID 0x200+id, synchronous): target velocity 0x60FF [counts/s];
 * TPDO1 (0x180+id, every SYNC): position actual 0x6064 [counts], velocity actual
@@ -18,6 +28,10 @@ drives apply the targets and answer with TPDO1 on that SYNC.
 :meth:`CanopenBase.read_odometry` integrates the newest TPDO1 positions (non-blocking;
 usually the answers to the previous SYNC).  Units: counts = ``counts_per_rev`` per
 wheel revolution, so ``rad = counts * 2 pi / counts_per_rev``.
+
+A drive that rebooted (boot-up message) comes back with its default objects (no PDOs,
+no heartbeat, no watchdog, shutdown option 0 = coast): :meth:`CanopenBase.enable`
+configures it again, fully, before enabling it.  See docs/base-drives.md.
 """
 
 from __future__ import annotations
@@ -27,7 +41,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from functools import partial
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -37,13 +51,14 @@ import canopen
 import numpy as np
 import structlog
 from canopen.nmt import NMT_STATES
+from canopen.objectdictionary import ODVariable
 from canopen.pdo import PdoMap
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from canopen.sdo.exceptions import SdoError
 
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig
-from mmctl.errors import FaultCause, MmctlError, SafetyFault, TransportError
+from mmctl.errors import ConfigError, FaultCause, MmctlError, SafetyFault, TransportError
 from mmctl.transports.base import cia402 as ds
 from mmctl.transports.base.kinematics import OdometryIntegrator, WheelCommand, wrap_delta
 from mmctl.transports.base.protocol import WHEEL_NAMES, DriveStatus
@@ -61,7 +76,14 @@ _OPERATIONAL = 5
 _STARTUP_TIMEOUT = 2.0
 #: Receive-thread poll period; bounds how long close() waits for the thread [s].
 _NOTIFIER_CYCLE = 0.05
+#: Poll period of 0x6041 while a drive ramps to rest (disable, fault reaction) [s].
+_REST_POLL = 0.005
+#: Fault-reset edges enable() sends before it gives up on a drive in FAULT.
+_RESET_ATTEMPTS = 3
 _ZERO = np.zeros(4)
+#: CiA 402 states in which the power stage is on (or a stopping ramp still runs).
+_MOVING = frozenset({ds.Cia402State.OPERATION_ENABLED, ds.Cia402State.QUICK_STOP_ACTIVE,
+                     ds.Cia402State.FAULT_REACTION_ACTIVE})
 _TARGET = struct.Struct("<i")  # RPDO1: target velocity 0x60FF, INTEGER32 [counts/s]
 
 
@@ -75,12 +97,17 @@ def _rpdo1_cob_id(pdo: PdoMap) -> int:
     return int(pdo.cob_id)
 
 
-def _parallel(fn: Callable[[int], T], n: int) -> list[T | BaseException]:
+def _parallel(fn: Callable[[int], T], n: int, keepalive: Callable[[], None] | None = None,
+              every: float = 0.05) -> list[T | BaseException]:
     """``fn(i)`` for i in range(n) concurrently (one SDO conversation per drive);
-    each result or the exception it raised, in order."""
+    each result or the exception it raised, in order.  While they run, ``keepalive()``
+    is called every ``every`` [s] from the calling thread."""
     out: list[T | BaseException] = []
     with ThreadPoolExecutor(max_workers=n, thread_name_prefix="canopen-sdo") as pool:
         futures = [pool.submit(fn, i) for i in range(n)]
+        if keepalive is not None:
+            while wait(futures, timeout=every).not_done:
+                keepalive()
         for f in futures:
             exc = f.exception()
             out.append(exc if exc is not None else f.result())
@@ -101,8 +128,34 @@ class CanopenBase:
         self._n = len(self._ids)
         self._counts_per_rad = self._co.counts_per_rev / (2.0 * math.pi)
         self._rad_per_count = 1.0 / self._counts_per_rad
-        self._accel_counts = max(1, round(
-            limits.base_linear_acceleration / cfg.mecanum.wheel_radius * self._counts_per_rad))
+        wheel_accel = limits.base_linear_acceleration / cfg.mecanum.wheel_radius  # [rad/s^2]
+        self._accel_counts = max(1, round(wheel_accel * self._counts_per_rad))
+        rest = limits.wheel_velocity / wheel_accel  # [s] from the wheel limit to rest
+        if self._co.stop_timeout < rest:
+            raise ConfigError(
+                "base.canopen.stop_timeout", self._co.stop_timeout,
+                f"must be at least {rest:.3f} s: the wheels take that long from "
+                f"limits.wheel_velocity = {limits.wheel_velocity} rad/s to rest at "
+                f"limits.base_linear_acceleration = {limits.base_linear_acceleration} m/s^2")
+        watchdog_ms = round(cfg.command_watchdog * 1000)
+        self._watchdog_ms = watchdog_ms
+        #: period of the zero targets sent while enable()/disable() wait [s]
+        self._keepalive = cfg.command_watchdog / 4.0
+        #: (index, subindex, value): what connect() writes besides the PDOs, and reads
+        #: back; the stop-related objects first
+        self._settings: tuple[tuple[int, int, int], ...] = (
+            (ds.PRODUCER_HEARTBEAT_TIME, 0, max(1, round(self._co.heartbeat_period * 1000))),
+            (ds.QUICK_STOP_DECELERATION, 0, self._accel_counts),
+            (ds.PROFILE_ACCELERATION, 0, self._accel_counts),
+            (ds.PROFILE_DECELERATION, 0, self._accel_counts),
+            (ds.QUICK_STOP_OPTION, 0, ds.QUICK_STOP_QUICK_STOP_RAMP),
+            (ds.SHUTDOWN_OPTION, 0, ds.STOP_OPTION_SLOW_DOWN_RAMP),
+            (ds.DISABLE_OPERATION_OPTION, 0, ds.STOP_OPTION_SLOW_DOWN_RAMP),
+            (ds.FAULT_REACTION_OPTION, 0, ds.FAULT_REACTION_QUICK_STOP_RAMP),
+            (ds.ABORT_CONNECTION_OPTION, 0, ds.ABORT_QUICK_STOP),
+            (ds.CONSUMER_HEARTBEAT_TIME, 1, self._co.master_node_id << 16 | watchdog_ms),
+            (ds.MODES_OF_OPERATION, 0, ds.MODE_PROFILE_VELOCITY),
+        )
         self._command = WheelCommand(cfg.mecanum, limits.wheel_velocity)
         self._odo = OdometryIntegrator(cfg.mecanum)
         self._network: canopen.Network | None = None
@@ -113,6 +166,7 @@ class CanopenBase:
         self._cond = threading.Condition()
         self._hb_time = [-math.inf] * self._n
         self._hb_state: list[int | None] = [None] * self._n
+        self._booted = [False] * self._n  # boot-up message seen since configured
         self._statusword = [0] * self._n
         self._pos = [0] * self._n
         self._vel = [0] * self._n
@@ -162,7 +216,7 @@ class CanopenBase:
             self._rpdo_cob = [_rpdo1_cob_id(pdo) for pdo in self._rpdo]
             for node in self._nodes:
                 node.nmt.state = "OPERATIONAL"
-            self._wait_operational()
+            self._wait_operational(range(self._n))
             self._hb_task = net.send_periodic(
                 0x700 + co.master_node_id, bytes([_OPERATIONAL]), co.heartbeat_period)
         except BaseException:
@@ -172,47 +226,82 @@ class CanopenBase:
         log.info("base_connected", transport="canopen", channel=co.channel, node_ids=self._ids)
 
     def enable(self) -> None:
-        """Fault reset (controlword bit 7 edge) where a drive shows FAULT, then
-        shutdown -> switch on -> enable operation, each step checked on 0x6041.
+        """Bring every drive to OPERATION ENABLED, each step checked on 0x6041.
+
+        A drive that rebooted since it was configured (boot-up message seen, or its
+        consumer heartbeat 0x1016:01 reads back wrong) is first configured again, fully
+        (objects, PDOs, NMT OPERATIONAL).  A drive in FAULT REACTION ACTIVE is waited
+        for (it is bringing its wheel to rest; no reset is possible there) until FAULT,
+        at most ``base.canopen.stop_timeout``; in FAULT the reset edge (controlword bit
+        7) is sent, and repeated if the drive stays in FAULT; a drive in QUICK STOP
+        ACTIVE is waited for until it has come to rest.  Then shutdown -> switch on ->
+        enable operation.  Blocks up to about ``stop_timeout`` + a few ``sdo_timeout``.
 
         Raises SafetyFault(DRIVE_FAULT) when a drive stays in FAULT, TransportError when
-        a drive does not reach OPERATION ENABLED."""
+        a drive does not reach OPERATION ENABLED; then every drive is disabled again (a
+        failed enable never takes effect later)."""
         self._require_connected()
         self._fault = None
-        self._send_wheels(_ZERO)
-        results = _parallel(self._enable_one, self._n)
-        for r in results:
-            if isinstance(r, SafetyFault):
-                self._fault = r
-                raise r
-        self._raise_errors(results, "cannot be enabled")
-        self._enabled = True
-        self.check()
+        try:
+            self._reconfigure_rebooted()
+            self._send_wheels(_ZERO)
+            # zero targets keep flowing while a drive is waited for: the RPDO deadline
+            # of a drive already in OPERATION ENABLED must not expire meanwhile
+            results = _parallel(self._enable_one, self._n, self._keep_zero, self._keepalive)
+            for r in results:
+                if isinstance(r, SafetyFault):
+                    self._fault = r
+                    raise r
+            self._raise_errors(results, "cannot be enabled")
+            # the RPDO deadline (0x1400:05) runs from here: the caller sends targets now
+            self._send_wheels(_ZERO)
+            self._enabled = True
+            self.check()
+        except BaseException:
+            self._enabled = False
+            try:
+                self.disable()
+            except MmctlError as exc:
+                log.warning("base_enable_undo_failed", error=str(exc))
+            raise
         log.info("base_enabled", transport="canopen")
 
     def stop(self) -> None:
-        """Zero target velocity on every drive (RPDOs + SYNC)."""
+        """Zero target velocity on every drive (RPDOs + SYNC); the drives slow down on
+        their profile deceleration 0x6084.  Never waits (the loop thread calls it in the
+        cycle that detects a fault)."""
         if self._network is not None:
             self._send_wheels(_ZERO)
 
     def disable(self) -> None:
-        """Zero target, then controlword SHUTDOWN (-> READY TO SWITCH ON) on every
-        drive whose heartbeat is alive; silent drives are skipped (logged)."""
+        """Bring every wheel to rest, then open the power stages.
+
+        Zero target, then controlword SHUTDOWN by SDO to every drive, including those
+        whose heartbeat looks lost (any drive that still answers SDOs is reached; one
+        that does not costs its SDO timeout and is reported).  Each drive executes the
+        shutdown as 0x605B = 1 (written at connect) says: it ramps to rest on its
+        profile deceleration 0x6084, and only then switches its power stage off (READY
+        TO SWITCH ON).  A drive already stopping by itself (QUICK STOP ACTIVE, FAULT
+        REACTION ACTIVE) is left to finish.
+
+        **Blocks** until every drive that answered has its power stage off (or is in
+        FAULT), at most ``base.canopen.stop_timeout`` (2 s by default; from the wheel
+        speed limit the ramp takes <= 1.15 s), plus the SDO time of a silent drive
+        (``sdo_timeout``, retried once).  Raises TransportError naming the drives that
+        did not answer or are still turning then; a drive is never forced off while its
+        wheel turns."""
         if self._network is None:
             return
-        self._send_wheels(_ZERO)
         self._enabled = False
-        now = time.monotonic()
-        alive = [now - t <= self._co.heartbeat_timeout for t in self._hb_time]
-        for i, ok in enumerate(alive):
-            if not ok:
-                log.warning("base_disable_skipped_silent_drive", node_id=self._ids[i])
-
-        def shutdown(i: int) -> None:
-            if alive[i]:
-                self._nodes[i].sdo[ds.CONTROLWORD].raw = ds.Controlword.SHUTDOWN
-
-        self._raise_errors(_parallel(shutdown, self._n), "did not accept SHUTDOWN")
+        t0 = time.monotonic()
+        try:
+            self._send_wheels(_ZERO)
+        except TransportError as exc:  # the SDOs below may still get through
+            log.warning("base_disable_zero_target_failed", error=str(exc))
+        results = _parallel(self._disable_one, self._n, self._keep_zero, self._keepalive)
+        self._raise_errors(results, "cannot be disabled")
+        log.info("base_disabled", transport="canopen",
+                 waited_ms=round((time.monotonic() - t0) * 1e3, 1))
 
     def close(self) -> None:
         """Stop and disable (best effort, failures logged), NMT PRE-OPERATIONAL, close
@@ -317,12 +406,21 @@ class CanopenBase:
         with self._cond:
             self._hb_time = [-math.inf] * self._n
             self._hb_state = [None] * self._n
+            self._booted = [False] * self._n
             self._statusword = [0] * self._n
             self._rx_mask = 0
             self._sample_time = 0.0
             self._prev_time = -1.0
             self._fault = None
             self._enabled = False
+
+    def _keep_zero(self) -> None:
+        """Zero targets (RPDOs + SYNC) while enable()/disable() wait for drives: they
+        feed the RPDO deadline of the drives in OPERATION ENABLED; errors logged."""
+        try:
+            self._send_wheels(_ZERO)
+        except MmctlError as exc:
+            log.warning("base_keepalive_failed", error=str(exc))
 
     def _require_connected(self) -> None:
         if self._network is None:
@@ -357,7 +455,10 @@ class CanopenBase:
         fault = None
         for i, nid in enumerate(self._ids):
             age = now - self._hb_time[i]
-            if age > timeout:
+            if self._booted[i]:
+                fault = SafetyFault(FaultCause.DRIVE_FAULT, node_id=nid, wheel=WHEEL_NAMES[i],
+                                    state="rebooted (boot-up message)")
+            elif age > timeout:
                 fault = SafetyFault(FaultCause.DRIVE_HEARTBEAT, node_id=nid,
                                     wheel=WHEEL_NAMES[i], silent_for=round(age, 4))
             elif self._hb_state[i] != _OPERATIONAL:
@@ -379,10 +480,16 @@ class CanopenBase:
     def _on_heartbeat(self, i: int, can_id: int, data: bytearray, timestamp: float) -> None:
         if not data:
             return
+        state = data[0] & 0x7F
         with self._cond:
             self._hb_time[i] = time.monotonic()
-            self._hb_state[i] = data[0] & 0x7F
+            self._hb_state[i] = state
+            if state == 0:  # boot-up: the drive restarted with its default objects
+                self._booted[i] = True
             self._cond.notify_all()
+        if state == 0:
+            log.warning("base_drive_rebooted", transport="canopen", node_id=self._ids[i],
+                        wheel=WHEEL_NAMES[i])
 
     def _on_tpdo1(self, i: int, pdo: PdoMap) -> None:
         """Collect one SYNC's four samples; publish them together once all arrived (so
@@ -407,43 +514,98 @@ class CanopenBase:
                 f"node {self._ids[i]} is not a CiA 402 drive (device type 0x{dtype:08X})")
 
     def _configure_one(self, i: int) -> None:
-        node, nid, co = self._nodes[i], self._ids[i], self._co
+        """NMT PRE-OPERATIONAL, write every setting and the PDO layout, read the settings
+        back (TransportError naming the object when one differs)."""
+        node, nid = self._nodes[i], self._ids[i]
+        with self._cond:
+            self._booted[i] = False
         node.nmt.state = "PRE-OPERATIONAL"
         sdo = node.sdo
-        sdo[ds.PRODUCER_HEARTBEAT_TIME].raw = max(1, round(co.heartbeat_period * 1000))
-        sdo[ds.MODES_OF_OPERATION].raw = ds.MODE_PROFILE_VELOCITY
-        sdo[ds.PROFILE_ACCELERATION].raw = self._accel_counts
-        sdo[ds.PROFILE_DECELERATION].raw = self._accel_counts
+        for index, sub, value in self._settings:
+            self._entry(i, index, sub).raw = value
         sdo[ds.TARGET_VELOCITY].raw = 0
-        layout: tuple[tuple[PdoMap, int, int, tuple[int, ...]], ...] = (
-            (node.rpdo[1], 0x200, 1, (ds.TARGET_VELOCITY,)),
-            (node.rpdo[2], 0x300, 0, ()),
-            (node.tpdo[1], 0x180, 1, (ds.POSITION_ACTUAL, ds.VELOCITY_ACTUAL)),
-            (node.tpdo[2], 0x280, 255, (ds.STATUSWORD,)),
+        layout: tuple[tuple[PdoMap, int, int, tuple[int, ...], int | None], ...] = (
+            (node.rpdo[1], 0x200, 1, (ds.TARGET_VELOCITY,), self._watchdog_ms),
+            (node.rpdo[2], 0x300, 0, (), None),
+            (node.tpdo[1], 0x180, 1, (ds.POSITION_ACTUAL, ds.VELOCITY_ACTUAL), None),
+            (node.tpdo[2], 0x280, 255, (ds.STATUSWORD,), None),
         )
-        for pdo, cob, trans, objects in layout:
+        for pdo, cob, trans, objects, event_timer in layout:
             pdo.clear()
             for index in objects:
                 pdo.add_variable(index)
             pdo.cob_id = cob + nid
             pdo.trans_type = trans if objects else 255
+            pdo.event_timer = event_timer  # RPDO1: the deadline [ms]
             pdo.enabled = bool(objects)
             pdo.save()
-        node.tpdo[1].add_callback(partial(self._on_tpdo1, i))
-        node.tpdo[2].add_callback(partial(self._on_tpdo2, i))
+        for pdo, cb in ((node.tpdo[1], partial(self._on_tpdo1, i)),
+                        (node.tpdo[2], partial(self._on_tpdo2, i))):
+            pdo.callbacks.clear()  # a reconfigured drive: not twice
+            pdo.add_callback(cb)
+        wrong = self._wrong_settings(i)
+        if wrong:
+            raise TransportError(f"drive {nid} does not keep its settings: {'; '.join(wrong)}")
         pos = sdo[ds.POSITION_ACTUAL].raw
         self._statusword[i] = sdo[ds.STATUSWORD].raw
         with self._cond:
             self._pos[i] = self._prev_pos[i] = self._rx_pos[i] = pos
+        log.info("base_drive_configured", transport="canopen", node_id=nid,
+                 command_watchdog_ms=self._watchdog_ms)
 
-    def _wait_operational(self) -> None:
+    def _entry(self, i: int, index: int, sub: int) -> Any:
+        """The SDO variable index:sub of drive ``i`` (sub ignored for a plain variable)."""
+        node = self._nodes[i]
+        if isinstance(node.object_dictionary[index], ODVariable):
+            return node.sdo[index]
+        return node.sdo[index][sub]
+
+    def _wrong_settings(self, i: int) -> list[str]:
+        """The settings (and RPDO1's deadline, mapping, COB-ID) drive ``i`` reads back
+        differently from what connect() wrote, as text."""
+        want = [*self._settings,
+                (ds.RPDO1_COMMUNICATION, ds.EVENT_TIMER_SUBINDEX, self._watchdog_ms),
+                (ds.RPDO1_COMMUNICATION, 1, 0x200 + self._ids[i]),
+                (0x1600, 0, 1), (0x1600, 1, ds.TARGET_VELOCITY << 16 | 32)]
+        wrong = []
+        for index, sub, value in want:
+            got = int(self._entry(i, index, sub).raw)
+            if index == ds.RPDO1_COMMUNICATION and sub == 1:
+                got &= 0xBFFF_FFFF  # the RTR bit is not ours to set
+            if got != value:
+                wrong.append(f"0x{index:04X}:{sub:02X} = {got}, wrote {value}")
+        return wrong
+
+    def _reconfigure_rebooted(self) -> None:
+        """Configure again, fully, every drive that rebooted since connect (boot-up
+        seen, or its consumer heartbeat 0x1016:01 no longer what we wrote), then NMT
+        OPERATIONAL and wait for its heartbeat."""
+        consumer = self._co.master_node_id << 16 | self._watchdog_ms
+
+        def refresh(i: int) -> bool:
+            entry = self._nodes[i].sdo[ds.CONSUMER_HEARTBEAT_TIME][1]
+            if not self._booted[i] and int(entry.raw) == consumer:
+                return False
+            log.warning("base_drive_reconfigure", transport="canopen", node_id=self._ids[i],
+                        booted=self._booted[i])
+            self._configure_one(i)
+            return True
+
+        results = _parallel(refresh, self._n)
+        self._raise_errors(results, "cannot be configured")
+        redo = [i for i, r in enumerate(results) if r is True]
+        for i in redo:
+            self._nodes[i].nmt.state = "OPERATIONAL"
+        self._wait_operational(redo)
+
+    def _wait_operational(self, which: Sequence[int] | range) -> None:
         wait = max(_STARTUP_TIMEOUT, 5 * self._co.heartbeat_timeout)
         deadline = time.monotonic() + wait
         with self._cond:
-            while any(s != _OPERATIONAL for s in self._hb_state):
+            while any(self._hb_state[i] != _OPERATIONAL for i in which):
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    bad = [nid for nid, s in zip(self._ids, self._hb_state) if s != _OPERATIONAL]
+                    bad = [self._ids[i] for i in which if self._hb_state[i] != _OPERATIONAL]
                     raise TransportError(
                         f"drive(s) {bad} sent no OPERATIONAL heartbeat within {wait:.1f} s "
                         f"on channel {self._co.channel!r}")
@@ -454,41 +616,74 @@ class CanopenBase:
         sdo = node.sdo
         sw = sdo[ds.STATUSWORD].raw
         state = ds.decode_statusword(sw)
+        if state is ds.Cia402State.FAULT_REACTION_ACTIVE:
+            # still bringing its wheel to rest: CiA 402 has no reset from here, a reset
+            # edge now is lost; wait for FAULT
+            sw, state = self._wait_state(i, {ds.Cia402State.FAULT}, self._co.stop_timeout,
+                                         _REST_POLL)
+        if state is ds.Cia402State.FAULT:
+            for _ in range(_RESET_ATTEMPTS):
+                sdo[ds.CONTROLWORD].raw = ds.Controlword.DISABLE_VOLTAGE  # bit 7 low
+                sdo[ds.CONTROLWORD].raw = ds.Controlword.FAULT_RESET  # its rising edge
+                sw, state = self._wait_state(i, {ds.Cia402State.SWITCH_ON_DISABLED},
+                                             self._co.sdo_timeout)
+                if state is not ds.Cia402State.FAULT:
+                    break
         if state in (ds.Cia402State.FAULT, ds.Cia402State.FAULT_REACTION_ACTIVE):
-            sdo[ds.CONTROLWORD].raw = ds.Controlword.DISABLE_VOLTAGE
-            sdo[ds.CONTROLWORD].raw = ds.Controlword.FAULT_RESET
-            sw, state = self._wait_state(i, ds.Cia402State.SWITCH_ON_DISABLED)
-            if state is ds.Cia402State.FAULT:
-                raise SafetyFault(FaultCause.DRIVE_FAULT, node_id=nid, wheel=WHEEL_NAMES[i],
-                                  state=state.value, statusword=f"0x{sw:04X}",
-                                  error_code=f"0x{sdo[ds.ERROR_CODE].raw:04X}")
+            raise SafetyFault(FaultCause.DRIVE_FAULT, node_id=nid, wheel=WHEEL_NAMES[i],
+                              state=state.value, statusword=f"0x{sw:04X}",
+                              error_code=f"0x{sdo[ds.ERROR_CODE].raw:04X}")
         if state is ds.Cia402State.QUICK_STOP_ACTIVE:
-            sdo[ds.CONTROLWORD].raw = ds.Controlword.DISABLE_VOLTAGE
-            sw, state = self._wait_state(i, ds.Cia402State.SWITCH_ON_DISABLED)
+            # 0x605A = 2: it goes to SWITCH ON DISABLED by itself once at rest
+            sw, state = self._wait_state(i, {ds.Cia402State.SWITCH_ON_DISABLED},
+                                         self._co.stop_timeout, _REST_POLL)
+            if state is ds.Cia402State.QUICK_STOP_ACTIVE:
+                raise TransportError(
+                    f"drive {nid} stays in QUICK STOP ACTIVE {self._co.stop_timeout} s "
+                    f"(statusword 0x{sw:04X})")
         if state is not ds.Cia402State.OPERATION_ENABLED:
-            sdo[ds.MODES_OF_OPERATION].raw = ds.MODE_PROFILE_VELOCITY
             for cw, want in (
                 (ds.Controlword.SHUTDOWN, ds.Cia402State.READY_TO_SWITCH_ON),
                 (ds.Controlword.SWITCH_ON, ds.Cia402State.SWITCHED_ON),
                 (ds.Controlword.ENABLE_OPERATION, ds.Cia402State.OPERATION_ENABLED),
             ):
                 sdo[ds.CONTROLWORD].raw = cw
-                sw, state = self._wait_state(i, want)
+                sw, state = self._wait_state(i, {want}, self._co.sdo_timeout)
                 if state is not want:
                     raise TransportError(
                         f"drive {nid} stays in {state.value} (statusword 0x{sw:04X}) after "
                         f"controlword 0x{int(cw):04X}, expected {want.value}")
         self._statusword[i] = sw
 
-    def _wait_state(self, i: int, want: ds.Cia402State) -> tuple[int, ds.Cia402State]:
-        """Poll 0x6041 until it shows ``want`` or sdo_timeout passes."""
-        deadline = time.monotonic() + self._co.sdo_timeout
+    def _disable_one(self, i: int) -> None:
+        """SHUTDOWN (unless the drive stops by itself already), then wait until its
+        power stage is off (at most stop_timeout)."""
+        nid, sdo = self._ids[i], self._nodes[i].sdo
+        state = ds.decode_statusword(sdo[ds.STATUSWORD].raw)
+        if state not in (ds.Cia402State.QUICK_STOP_ACTIVE, ds.Cia402State.FAULT_REACTION_ACTIVE,
+                         ds.Cia402State.FAULT):
+            sdo[ds.CONTROLWORD].raw = ds.Controlword.SHUTDOWN
+        settled = set(ds.Cia402State) - _MOVING - {ds.Cia402State.UNKNOWN}
+        sw, state = self._wait_state(i, settled, self._co.stop_timeout, _REST_POLL)
+        self._statusword[i] = sw
+        if state in _MOVING:
+            speed = sdo[ds.VELOCITY_ACTUAL].raw * self._rad_per_count
+            raise TransportError(
+                f"drive {nid} still in {state.value} {self._co.stop_timeout} s after "
+                f"SHUTDOWN (wheel at {speed:.2f} rad/s); base.canopen.stop_timeout too short "
+                "or the drive ignores its shutdown option 0x605B")
+
+    def _wait_state(self, i: int, want: set[ds.Cia402State] | frozenset[ds.Cia402State],
+                    timeout: float, poll: float = 0.001) -> tuple[int, ds.Cia402State]:
+        """Poll 0x6041 (every ``poll`` [s]) until it shows a state in ``want`` or
+        ``timeout`` [s] passes."""
+        deadline = time.monotonic() + timeout
         while True:
             sw = self._nodes[i].sdo[ds.STATUSWORD].raw
             state = ds.decode_statusword(sw)
-            if state is want or time.monotonic() > deadline:
+            if state in want or time.monotonic() > deadline:
                 return sw, state
-            time.sleep(0.001)
+            time.sleep(poll)
 
     def _raise_errors(self, results: Sequence[object], what: str) -> None:
         timeouts = [nid for nid, r in zip(self._ids, results)
