@@ -12,12 +12,31 @@ Each drive: NMT slave with heartbeat producer (0x1017), boot-up message, SDO ser
 the CiA 402 state machine on controlword writes (:func:`cia402.next_state`), modes of
 operation (only 3 = profile velocity is accepted), RPDOs applied on the next SYNC,
 TPDOs sent on SYNC (types 1-240) or on change (254/255), using whatever PDO mapping the
-master wrote (reloaded on NMT start); EMCY on faults.  The wheels are simulated by
-:class:`WheelPlant`: velocity ramps toward the target at the profile acceleration
-0x6083/0x6084, positions integrate the velocity, and a drive that received no command
-for ``base.command_watchdog`` ramps to zero.  Fault injection: :meth:`FakeDrives.
-inject_fault` (FAULT state + EMCY), :meth:`FakeDrives.inject_silence` (heartbeat stops,
-nothing answered), :meth:`FakeDrives.resume`.
+master wrote (reloaded on NMT start); EMCY on faults and watchdog events.  The wheels
+are simulated by :class:`WheelPlant`: velocity ramps toward the target at the profile
+acceleration 0x6083/0x6084, positions integrate the velocity.
+
+Every way a drive stops is the one its objects select, as on a device:
+
+* its command watchdog: consumer heartbeat 0x1016:01 (monitoring starts with the first
+  heartbeat of the producer) and the RPDO deadline 0x1400+n:05 (starts with the first
+  RPDO after NMT start); an event sends EMCY 0x8130 / 0x8250 and, in OPERATION ENABLED,
+  does what the abort connection option code 0x6007 says (0 nothing, 1 fault, 2 disable
+  voltage, 3 quick stop).  Nothing stops a drive whose objects are at their defaults
+  (all off);
+* quick stop per 0x605A (ramp on 0x6084 or 0x6085, then SWITCH ON DISABLED or stay);
+  shutdown / disable operation per 0x605B / 0x605C (0, the default of 0x605B: power
+  stage off at once; 1: slow-down ramp 0x6084, the state changes once at rest);
+* a fault: FAULT REACTION ACTIVE while the 0x605E reaction brings the wheel to rest
+  (default: quick-stop ramp), then FAULT; no controlword acts in FAULT REACTION ACTIVE;
+* power stage off: the wheel coasts (a slow friction decay, see :class:`WheelPlant`),
+  each switch-off logged with the wheel speed (:meth:`FakeDrives.power_offs`).
+
+A supervisor thread acts on deadlines and ramp ends as they fall due (each at its own
+time in the plant's integration).  Fault injection: :meth:`FakeDrives.inject_fault`,
+:meth:`FakeDrives.inject_silence` (heartbeat stops, nothing answered or heard),
+:meth:`FakeDrives.resume`, :meth:`FakeDrives.reboot` (power off, all objects to their
+defaults, boot-up, PRE-OPERATIONAL; an NMT reset node / communication does the same).
 """
 
 from __future__ import annotations
