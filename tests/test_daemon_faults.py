@@ -120,11 +120,14 @@ def world() -> Iterator[World]:
     cfg = config_from_dict({
         "name": "fault-tests",
         "sim": {"enabled": True, "human": False, "auto_enable": False},
-        "arm": {"host": _host(), "stale_cycles": 50},
+        # these tests step the daemon by hand, with pauses between the steps: the
+        # controller's watchdog (its own test: test_stop_path) and the drives' at 1 s
+        "arm": {"host": _host(), "stale_cycles": 50, "watchdog_min_frequency": 1.0},
         "sensor": {"transport": "can", "can": {"interface": "virtual", "channel": f"flt-s-{uid}"},
                    "wrench": {"stale_timeout": 0.1}},
         "base": {"transport": "canopen", "canopen": {
-            "interface": "virtual", "channel": f"flt-b-{uid}", "heartbeat_timeout": 0.5}},
+            "interface": "virtual", "channel": f"flt-b-{uid}", "heartbeat_timeout": 0.5},
+                 "command_watchdog": 1.0},
     })
     daemon = create_daemon(cfg, socket_path=None)
     daemon.open()

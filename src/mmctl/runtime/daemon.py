@@ -412,10 +412,10 @@ class Daemon:
             self.devices.base.enable()
             self.devices.base.check()
         except SafetyFault as exc:
-            self.devices.stop(self.cfg.arm.stop_deceleration)
+            self.devices.stop(self.cfg.arm.stop_deceleration, wait=False)
             self.safety.enable({exc.cause: {"device": "base", **exc.details}})  # refused
         except (MmctlError, OSError) as exc:
-            self.devices.stop(self.cfg.arm.stop_deceleration)
+            self.devices.stop(self.cfg.arm.stop_deceleration, wait=False)
             try:
                 self.devices.base.check()  # name the cause if the base knows it
             except SafetyFault as fault:
@@ -610,8 +610,10 @@ class Daemon:
                 log.warning("arm_watchdog_kick_failed", error=str(exc), suppressed=suppressed)
 
     def _send_stop(self) -> None:
+        """The stop commands, from the loop thread: never waits for the wheels to rest
+        (each drive ramps down before its power stage goes off, 0x605B)."""
         self.devices.stop(self.cfg.arm.stop_deceleration, disable_base=True,
-                          arm=not self._arm_busy)
+                          arm=not self._arm_busy, wait=False)
         self._base_enabled = False
         self.commands_sent["stop"] += 1
 

@@ -74,20 +74,22 @@ class Devices:
             raise
 
     def stop(self, arm_deceleration: float, disable_base: bool = True,
-             arm: bool = True) -> list[str]:
+             arm: bool = True, wait: bool = True) -> list[str]:
         """Zero the base, speedStop the arm, then disable the base; every step is tried.
 
         The base's zero target (RPDOs + SYNC) goes first: it never waits, while the
         arm's speedStop waits for the controller's handshake.  ``arm=False`` leaves the
-        arm out (a reconnect owns it; nothing it runs moves).  Returns the names of the
-        steps that failed (each logged); never raises.
+        arm out (a reconnect owns it; nothing it runs moves).  ``wait``: the base's
+        disable waits for the wheels to rest (False on the loop thread: the drives ramp
+        down by themselves).  Returns the names of the steps that failed (each logged);
+        never raises.
         """
         failed: list[str] = []
         steps: list[tuple[str, Callable[[], None]]] = [("base.stop", self.base.stop)]
         if arm:
             steps.append(("arm.stop", lambda: self.arm.stop(arm_deceleration)))
         if disable_base:
-            steps.append(("base.disable", self.base.disable))
+            steps.append(("base.disable", lambda: self.base.disable(wait)))
         for name, fn in steps:
             try:
                 fn()

@@ -273,7 +273,7 @@ class CanopenBase:
         if self._network is not None:
             self._send_wheels(_ZERO)
 
-    def disable(self) -> None:
+    def disable(self, wait: bool = True) -> None:
         """Bring every wheel to rest, then open the power stages.
 
         Zero target, then controlword SHUTDOWN by SDO to every drive, including those
@@ -284,12 +284,14 @@ class CanopenBase:
         TO SWITCH ON).  A drive already stopping by itself (QUICK STOP ACTIVE, FAULT
         REACTION ACTIVE) is left to finish.
 
-        **Blocks** until every drive that answered has its power stage off (or is in
-        FAULT), at most ``base.canopen.stop_timeout`` (2 s by default; from the wheel
-        speed limit the ramp takes <= 1.15 s), plus the SDO time of a silent drive
+        ``wait``: **block** until every drive that answered has its power stage off (or
+        is in FAULT), at most ``base.canopen.stop_timeout`` (2 s by default; from the
+        wheel speed limit the ramp takes <= 1.15 s), plus the SDO time of a silent drive
         (``sdo_timeout``, retried once).  Raises TransportError naming the drives that
         did not answer or are still turning then; a drive is never forced off while its
-        wheel turns."""
+        wheel turns.  ``wait=False`` (the loop thread stopping the robot): the SHUTDOWN
+        SDOs only, each drive ramps down by itself; a silent drive still costs its SDO
+        timeout."""
         if self._network is None:
             return
         self._enabled = False
@@ -298,7 +300,8 @@ class CanopenBase:
             self._send_wheels(_ZERO)
         except TransportError as exc:  # the SDOs below may still get through
             log.warning("base_disable_zero_target_failed", error=str(exc))
-        results = _parallel(self._disable_one, self._n, self._keep_zero, self._keepalive)
+        results = _parallel(lambda i: self._disable_one(i, wait), self._n, self._keep_zero,
+                            self._keepalive)
         self._raise_errors(results, "cannot be disabled")
         log.info("base_disabled", transport="canopen",
                  waited_ms=round((time.monotonic() - t0) * 1e3, 1))
@@ -655,14 +658,16 @@ class CanopenBase:
                         f"controlword 0x{int(cw):04X}, expected {want.value}")
         self._statusword[i] = sw
 
-    def _disable_one(self, i: int) -> None:
-        """SHUTDOWN (unless the drive stops by itself already), then wait until its
-        power stage is off (at most stop_timeout)."""
+    def _disable_one(self, i: int, wait: bool = True) -> None:
+        """SHUTDOWN (unless the drive stops by itself already), then (``wait``) wait
+        until its power stage is off (at most stop_timeout)."""
         nid, sdo = self._ids[i], self._nodes[i].sdo
         state = ds.decode_statusword(sdo[ds.STATUSWORD].raw)
         if state not in (ds.Cia402State.QUICK_STOP_ACTIVE, ds.Cia402State.FAULT_REACTION_ACTIVE,
                          ds.Cia402State.FAULT):
             sdo[ds.CONTROLWORD].raw = ds.Controlword.SHUTDOWN
+        if not wait:
+            return
         settled = set(ds.Cia402State) - _MOVING - {ds.Cia402State.UNKNOWN}
         sw, state = self._wait_state(i, settled, self._co.stop_timeout, _REST_POLL)
         self._statusword[i] = sw

@@ -84,8 +84,10 @@ class Base(Protocol):
     def stop(self) -> None:
         """Command zero wheel speed now (drives stay enabled)."""
 
-    def disable(self) -> None:
-        """Command zero, then take the drives out of OPERATION ENABLED."""
+    def disable(self, wait: bool = True) -> None:
+        """Command zero, then take the drives out of OPERATION ENABLED, each bringing its
+        wheel to rest before its power stage goes off.  ``wait``: block until they have
+        (bounded); False: only send the commands (the loop thread, in a stop)."""
 
     def close(self) -> None:
         """Stop, disable (best effort) and release the link.  Safe to call twice."""

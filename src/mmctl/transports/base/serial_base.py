@@ -125,8 +125,9 @@ class SerialBase:
         if self._ser is not None:
             self._write(sp.MsgType.WHEEL_CMD, sp.pack_wheel_cmd(_ZERO))
 
-    def disable(self) -> None:
-        """Zero command, then DISABLE (not waited for: the bridge ramps to zero)."""
+    def disable(self, wait: bool = True) -> None:
+        """Zero command, then DISABLE (never waited for, ``wait`` or not: the bridge ramps
+        to zero)."""
         if self._ser is None:
             return
         self._enabled = False
