@@ -394,3 +394,18 @@ def test_disable_reaches_a_drive_whose_heartbeat_is_lost_but_answers_sdo() -> No
             assert np.all(fakes.wheel_velocities() == 0.0)
             assert all(v == 0.0 for _, _, v in fakes.power_offs())
     assert math.isfinite(fault.details["silent_for"])
+
+
+def test_disable_without_waiting_still_switches_off_only_at_rest(
+    cfg: Config, fakes: FakeDrives, base: CanopenBase
+) -> None:
+    """The loop thread's stop: disable(wait=False) returns after the SHUTDOWNs, before the
+    wheels are at rest; each drive ramps down by itself and opens its power stage at 0."""
+    drive_at(base, fakes, FAST, 5.0)
+    t0 = time.monotonic()
+    base.disable(wait=False)  # returns after the SHUTDOWN SDOs (no timing asserted)
+    wait_until(lambda: len([1 for t, _, _ in fakes.power_offs() if t >= t0]) == 4)
+    offs = [(t, nid, v) for t, nid, v in fakes.power_offs() if t >= t0]
+    assert sorted(nid for _, nid, _ in offs) == sorted(cfg.base.canopen.node_ids)
+    assert all(abs(v) < 1e-9 for _, _, v in offs)
+    wait_until(lambda: [s.state for s in fakes.states()] == ["READY TO SWITCH ON"] * 4)
