@@ -190,7 +190,16 @@ def inject_and_detect(w: World, inject: Callable[[], None], cause: FaultCause,
     if in_cycle == 1:
         assert d.commands_sent["twist"] == before_twist
     w.sim.set_push(None)
-    if link_alive:
+    if link_alive and cause is FaultCause.ARM_STALE:
+        # the arm's process stops the arm itself (speedJ(0), the stop deceleration) and
+        # ends before ur_rtde's own reconnect: what the daemon sent after that child's
+        # last read never reached the controller
+        settled_offset(w)
+        log = w.arm_log()
+        assert log[-1].kind is CommandKind.SPEEDJ and not any(log[-1].qd), log[-3:]
+        assert log[-1].acceleration == pytest.approx(w.cfg.arm.stop_deceleration)
+        assert len(log) <= before_arm + offset + in_cycle + 1
+    elif link_alive:
         k = before_arm + offset  # the detecting cycle's first command in the fake's log
         end = k + in_cycle
         log = until(w.arm_log, lambda lg: len(lg) >= end, "the stop at the fake UR")

@@ -112,11 +112,13 @@ class Devices:
 
 def open_devices(cfg: Config, button: Button | None = None) -> Devices:
     """The real transports for ``cfg`` (not yet connected)."""
+    from mmctl.runtime import logging as mmctl_logging
     from mmctl.transports.base import open_base
     from mmctl.transports.sensor import open_sensor
-    from mmctl.transports.ur_rtde_arm import UrRtdeArm
+    from mmctl.transports.ur_rtde_process import UrRtdeProcessArm
 
-    arm = UrRtdeArm.from_config(cfg)
+    # ur_rtde in a process of its own: its crashes, hangs and GIL-holding calls stay there
+    arm = UrRtdeProcessArm(cfg.arm, cfg.limits, mmctl_logging.CURRENT)
     if button is None and cfg.daemon.switch_input >= 0:
         button = ArmDigitalInput(arm, cfg.daemon.switch_input)
     return Devices(arm=arm, sensor=open_sensor(cfg.sensor), base=open_base(cfg),

@@ -18,6 +18,11 @@ _LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warning": logging.WARN
            "error": logging.ERROR}
 
 
+CURRENT: tuple[str, bool | None] = ("info", None)
+"""(level, json) of the newest :func:`setup_logging` on stdout: what a child process
+of the daemon (the arm's) sets up in turn, so its events join the daemon's stream."""
+
+
 def setup_logging(level: str = "info", stream: TextIO | None = None,
                   json: bool | None = None) -> None:
     """Configure structlog for the process.
@@ -28,6 +33,9 @@ def setup_logging(level: str = "info", stream: TextIO | None = None,
     out = stream if stream is not None else sys.stdout
     if json is None:
         json = not (hasattr(out, "isatty") and out.isatty())
+    if stream is None:
+        global CURRENT
+        CURRENT = (level, json)
     renderer: Any = (structlog.processors.JSONRenderer() if json
                      else structlog.dev.ConsoleRenderer(colors=False))
     structlog.configure(
@@ -39,7 +47,9 @@ def setup_logging(level: str = "info", stream: TextIO | None = None,
             renderer,
         ],
         wrapper_class=structlog.make_filtering_bound_logger(_LEVELS.get(level, logging.INFO)),
-        logger_factory=structlog.PrintLoggerFactory(out),
+        # one write() per event, its newline included: the arm's process writes to the
+        # same stdout, and print()'s separate newline let their lines interleave
+        logger_factory=structlog.WriteLoggerFactory(out),
         cache_logger_on_first_use=False,
     )
 

@@ -336,9 +336,20 @@ class SimWorld:
             "hand_force": [round(float(x), 3) for x in self._last_force],
             "button": self.button.state,
             "ur_pid": None if self.ur is None else self.ur.pid,
+            # the fake controller's joints as its process publishes them right now
+            # (shared memory: true also while the daemon's own threads were stopped)
+            **self._arm_truth(),
             "updates": self.updates,
             "error": None if self.error is None else repr(self.error),
         }
+
+    def _arm_truth(self) -> dict[str, Any]:
+        if self.ur is None:
+            return {}
+        arm = self.ur.state()
+        return {"arm_q": [round(float(x), 6) for x in arm.q],
+                "arm_qd": [round(float(x), 6) for x in arm.qd],
+                "arm_time": arm.controller_time}
 
     def _write_logs(self, d: Path) -> None:
         d.mkdir(parents=True, exist_ok=True)

@@ -340,6 +340,23 @@ class UrRtdeArm:
             raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host,
                               why=str(exc)) from None
 
+    def end(self) -> None:
+        """speedStop and stopScript when the link is healthy and fresh; nothing else (the
+        arm's own process ends right after, see :mod:`mmctl.transports.ur_rtde_process`:
+        no disconnect, no destructor)."""
+        try:
+            if self._fresh():
+                if not self._ctrl.speedStop(self.config.stop_deceleration):
+                    log.warning("arm_speed_stop_refused", host=self.host)
+                self._ctrl.stopScript()
+        except RuntimeError as exc:
+            log.warning("arm_close_stop_failed", host=self.host, why=str(exc))
+
+    def digital_inputs(self) -> int:
+        """All of ``actual_digital_input_bits`` (bit i = input i), 0 when not connected."""
+        recv = self._recv
+        return 0 if recv is None else int(recv.getActualDigitalInputBits())
+
     def digital_input(self, index: int) -> bool:
         """Digital input ``index`` (0-7 standard, 8-15 configurable, 16-17 tool)."""
         if self._recv is None:
