@@ -1,6 +1,9 @@
 """Per-call cost of UrRtdeArm.read_state and speed_j against the fake UR controller.
 
-    .venv/bin/python tools/ur_bench_arm.py [--host 127.0.0.9] [--cycles 2000]
+    .venv/bin/python tools/ur_bench_arm.py [--host 127.0.0.9] [--cycles 2000] [--process]
+
+--process measures the daemon's arm, ur_rtde in a child process (UrRtdeProcessArm:
+a read takes the child's answer to the previous cycle's request; speed_j is a message).
 
 Runs a 500 Hz loop (read_state then speed_j each period, as the daemon does) and
 prints the median, 90th and 99th percentile of each call in microseconds, then the
@@ -19,6 +22,7 @@ import numpy as np
 from mmctl.config import config_from_dict
 from mmctl.sim.fake_ur import start_fake_ur
 from mmctl.transports.ur_rtde_arm import UrRtdeArm
+from mmctl.transports.ur_rtde_process import UrRtdeProcessArm
 
 
 def _stats(name: str, ns: list[int]) -> str:
@@ -31,16 +35,23 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--host", default="127.0.0.9")
     p.add_argument("--cycles", type=int, default=2000)
+    p.add_argument("--process", action="store_true", help="the daemon's process arm")
     args = p.parse_args()
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
     with start_fake_ur(args.host) as fake:
         cfg = config_from_dict({"arm": {"host": fake.host, "stale_cycles": 1000}})
-        with UrRtdeArm.from_config(cfg) as arm:
+        arm_type = UrRtdeProcessArm(cfg.arm, cfg.limits) if args.process \
+            else UrRtdeArm.from_config(cfg)
+        print("UrRtdeProcessArm (ur_rtde in a child)" if args.process
+              else "UrRtdeArm (ur_rtde in this process)")
+        with arm_type as arm:
             qd = np.array([0.05, -0.05, 0.05, 0.0, 0.05, -0.05])
             for paced in (True, False):
                 reads: list[int] = []
                 sends: list[int] = []
                 deadline = time.perf_counter()
+                arm.read_state()
+                time.sleep(0.01)
                 for i in range(args.cycles):
                     t0 = time.perf_counter_ns()
                     arm.read_state()

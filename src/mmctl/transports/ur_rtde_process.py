@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 import multiprocessing
 import os
+import select
 import signal
 import threading
 from collections.abc import Sequence
@@ -76,6 +77,7 @@ class UrRtdeProcessArm:
         self._proc: Any = None
         self._conn: Any = None
         self._lock = threading.Lock()
+        self._poller = select.poll()
         self._seq = 0
         self._missed = 0
         self._di = 0
@@ -124,6 +126,8 @@ class UrRtdeProcessArm:
             raise _rebuild(reply[1:])
         _, self.controller_version, self.serial_number = reply
         self._proc, self._conn = proc, parent
+        self._poller = select.poll()
+        self._poller.register(parent.fileno(), select.POLLIN)
         self._missed = 0
         self.last_state = None
         self._seq += 1
@@ -178,12 +182,12 @@ class UrRtdeProcessArm:
             reply: tuple[Any, ...] | None = None
             gone = False
             try:
-                wait = self.reply_wait
-                while conn.poll(wait):
+                wait_ms = self.reply_wait * 1e3
+                while self._poller.poll(wait_ms):  # (Connection.poll builds a selector)
                     got = conn.recv()  # answers come in order
                     if reply is None or reply[-1] is None:
                         reply = got  # the newest, unless an older one carries a fault
-                    wait = 0.0
+                    wait_ms = 0.0
                 self._seq += 1
                 conn.send(("read", self._seq))  # answered before the next cycle
             except (EOFError, OSError):
