@@ -35,7 +35,7 @@ def fake(loopback_host: str) -> Iterator[FakeURController]:
 
 
 def make_arm(host: str) -> UrRtdeProcessArm:
-    cfg = config_from_dict({"arm": {"host": host, "stale_cycles": 25,
+    cfg = config_from_dict({"arm": {"host": host, "stale_cycles": 100,
                                     "watchdog_min_frequency": 2.0}})
     return UrRtdeProcessArm(cfg.arm, cfg.limits)
 

@@ -340,15 +340,24 @@ class UrRtdeArm:
             raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host,
                               why=str(exc)) from None
 
-    def end(self) -> None:
-        """speedStop and stopScript when the link is healthy and fresh; nothing else (the
-        arm's own process ends right after, see :mod:`mmctl.transports.ur_rtde_process`:
-        no disconnect, no destructor)."""
+    def end(self, fresh_within: float = 0.05) -> None:
+        """Stop the joints and the control script; nothing else (the arm's own process
+        ends right after, see :mod:`mmctl.transports.ur_rtde_process`: no disconnect, no
+        destructor).  Waits up to ``fresh_within`` [s] for a fresh sample: then
+        speedStop (waits for the script's handshake); else, if still connected,
+        speedJ(0) with the stop deceleration.  stopScript in both cases."""
+        deadline = time.monotonic() + fresh_within
+        while not self._fresh() and time.monotonic() < deadline and self._ctrl is not None:
+            try:
+                self.read_state()
+            except SafetyFault:
+                break
+            time.sleep(0.001)
+        if self._ctrl is None or not self._ctrl.isConnected():
+            return
         try:
-            if self._fresh():
-                if not self._ctrl.speedStop(self.config.stop_deceleration):
-                    log.warning("arm_speed_stop_refused", host=self.host)
-                self._ctrl.stopScript()
+            self.stop()
+            self._ctrl.stopScript()
         except RuntimeError as exc:
             log.warning("arm_close_stop_failed", host=self.host, why=str(exc))
 

@@ -192,6 +192,7 @@ class UrRtdeProcessArm:
                 conn.send(("read", self._seq))  # answered before the next cycle
             except (EOFError, OSError):
                 gone = True  # the child ended: its last answer, if any, says why first
+                reply = self._last_words(conn, reply)
             if reply is None and gone:
                 raise self._gone()
             if reply is None:
@@ -244,6 +245,18 @@ class UrRtdeProcessArm:
 
     # -- internals -----------------------------------------------------------------------
 
+    @staticmethod
+    def _last_words(conn: Any, reply: tuple[Any, ...] | None) -> tuple[Any, ...] | None:
+        """Answers a child sent just before it ended (after this read stopped waiting)."""
+        try:
+            while conn.poll(0):
+                got = conn.recv()
+                if reply is None or reply[-1] is None:
+                    reply = got
+        except (EOFError, OSError):
+            pass
+        return reply
+
     def _send(self, msg: tuple[Any, ...]) -> None:
         with self._lock:
             conn = self._conn
@@ -253,6 +266,9 @@ class UrRtdeProcessArm:
             try:
                 conn.send(msg)
             except OSError:
+                last = self._last_words(conn, None)  # the child's fault, if it said one
+                if last is not None and last[-1] is not None:
+                    raise _rebuild(last[-1]) from None
                 raise self._gone() from None
 
     def _gone(self) -> SafetyFault:
@@ -363,12 +379,12 @@ class _Child:
                  None if fault is None else _describe(fault))
         fatal = isinstance(fault, SafetyFault) and fault.cause in FATAL \
             or isinstance(fault, TransportError)
-        if fatal:
-            arm.stop()  # speedJ(0): real-time, never waits; before ur_rtde reconnects
         try:
             conn_ok = True
-            self.conn.send(reply)
+            self.conn.send(reply)  # first: the daemon learns the cause at once
         except OSError:
             conn_ok = False
+        if fatal:
+            arm.stop()  # speedJ(0): real-time, never waits; before ur_rtde reconnects
         if fatal or not conn_ok:
             os._exit(0)
