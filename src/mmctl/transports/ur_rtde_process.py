@@ -72,8 +72,8 @@ class UrRtdeProcessArm:
         self.config = config
         self.limits = LimitsConfig() if limits is None else limits
         self.log_setup = log_setup
-        self.reply_wait = 0.25 / config.frequency
-        """[s] how long a read waits for an answer when none has arrived yet."""
+        self.reply_wait = 1.0 / config.frequency
+        """[s] how long the first read of a connection waits for its sample."""
         self._proc: Any = None
         self._conn: Any = None
         self._lock = threading.Lock()
@@ -171,8 +171,8 @@ class UrRtdeProcessArm:
         The loop never waits for the child: each read takes the answers that arrived
         (the newest wins, one carrying a fault first), then asks for the next sample,
         which the child reads and sends during the loop's idle time.  The sample is
-        thus about one period old (its controller time says exactly); only when no
-        answer is there yet does a read wait, at most a quarter period.
+        thus about one period old (its controller time says exactly); only the first
+        read of a connection waits for one (at most a period).
         """
         with self._lock:
             conn = self._conn
@@ -182,7 +182,9 @@ class UrRtdeProcessArm:
             reply: tuple[Any, ...] | None = None
             gone = False
             try:
-                wait_ms = self.reply_wait * 1e3
+                # the answer was asked for a period ago; missing, it is rarely worth the
+                # loop's time to wait (a starved child), except for a first sample
+                wait_ms = self.reply_wait * 1e3 if self.last_state is None else 0.0
                 while self._poller.poll(wait_ms):  # (Connection.poll builds a selector)
                     got = conn.recv()  # answers come in order
                     if reply is None or reply[-1] is None:
