@@ -132,8 +132,10 @@ def test_wheels_come_to_rest_by_themselves_when_the_master_goes_quiet(
     finally:
         base.close()
     wd, dec = cfg.base.command_watchdog, wheel_decel(cfg)
-    # in the simulation's time: at full speed for at most the watchdog, then the ramp
-    bound = np.abs(v0) * wd + v0**2 / (2 * dec)
+    # in the simulation's time: at full speed for at most the watchdog, then the ramp;
+    # plus 20 ms at full speed: this test reads the start position before it silences
+    # the master, and on a loaded machine the fake's timer thread checks late
+    bound = np.abs(v0) * (wd + 0.02) + v0**2 / (2 * dec)
     assert np.all(np.abs(travelled) <= bound + 1e-6), (travelled, bound)
     kinds = set()
     rest_after = []

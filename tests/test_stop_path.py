@@ -90,13 +90,20 @@ class Daemon:
         self.wait_for(lambda: self.call("status")["cycles"] > 0, "the control socket")
 
     def arm_and_push(self, push: list[float]) -> None:
-        """Tare, enable, push: the robot moves."""
+        """Tare, enable, push: the robot moves.  A fault the machine's load causes on
+        its own (a starved loop or arm process) is followed by another enable."""
         self.call("tare")
         self.wait_for(lambda: not self.call("status")["taring"], "the tare")
-        self.wait_for(lambda: self._enabled(), "enable")
         self.call("sim", push=push)
-        p0 = self.handle()
-        self.wait_for(lambda: np.linalg.norm(self.handle() - p0) > 0.03, "motion")
+        for _attempt in range(5):
+            self.wait_for(lambda: self._enabled(), "enable")
+            p0 = self.handle()
+            moved = self.wait_for(
+                lambda p0=p0: (np.linalg.norm(self.handle() - p0) > 0.03
+                         or self.call("status")["state"] != "armed"), "motion or a fault")
+            if moved and self.call("status")["state"] == "armed":
+                return
+        raise AssertionError(f"no motion after 5 enables\n{self.log_text()[-3000:]}")
 
     def _enabled(self) -> bool:
         try:
