@@ -233,6 +233,8 @@ class Daemon:
             log.error("arm_reconnect_still_running", why="the arm is not closed")
             self.devices.connected.clear()
         self.devices.close(arm=reconnect_done)
+        if reconnect_done:
+            self._arm_reconnect.release()
         if self.sim is not None:
             self.sim.close()
         if self.cpu_latency is not None:

@@ -1,5 +1,9 @@
 """The UR10e link through ur_rtde (``RTDEControlInterface`` + ``RTDEReceiveInterface``).
 
+The daemon runs this class in a process of its own
+(:class:`~mmctl.transports.ur_rtde_process.UrRtdeProcessArm`, which says why: ur_rtde
+1.6.5 can crash its process); tools and tests use it directly.
+
 Per cycle the daemon calls :meth:`UrRtdeArm.read_state`, then :meth:`UrRtdeArm.speed_j`
 (armed) or :meth:`UrRtdeArm.kick_watchdog` (not armed).
 
@@ -27,8 +31,9 @@ value (it stays True after a lost link).  ``read_state`` raises
 ur_rtde pitfalls measured against the fake controller (:mod:`mmctl.sim.fake_ur`) that
 shape this module:
 
-* its calls hold the GIL; ``speedStop`` waits for the script's "done" handshake and,
-  once the link is lost, keeps waiting for ~300 s.  :meth:`UrRtdeArm.stop` therefore
+* its constructors and destructors hold the GIL (its methods release it);
+  ``speedStop`` waits for the script's "done" handshake and, once the link is lost,
+  keeps waiting for ~300 s.  :meth:`UrRtdeArm.stop` therefore
   calls ``speedStop`` only when the newest sample was fresh and the arm healthy, and
   otherwise ``speedJ(0, deceleration)`` (a real-time command that never waits), or
   nothing when the link is down;
