@@ -157,6 +157,20 @@ def connect_only(ch: str, base: int, script: list,
     return peer, sensor
 
 
+def connect_reads_the_matrix(ch: str, base: int, requests: list, replies: list,  # type: ignore[type-arg]
+                             gauge_req: tuple[int, bytes]) -> None:
+    """connect() against the scripted replies, then one gauge read: exactly the
+    requests expected went out and the calibration matrix came out whole."""
+    peer, sensor = connect_only(ch, base, replies + [gauge_frames(base, 0, (1,) * 6), []])
+    try:
+        sensor.connect()
+    finally:
+        sensor.close()
+        peer.finish()
+    assert peer.seen == requests + [gauge_req, gauge_req]
+    np.testing.assert_array_equal(sensor.calibration, MATRIX)
+
+
 def test_matrix_row_frames_are_read_in_any_arrival_order() -> None:
     """ATI answers a row read on three ids (base|2, |3, |4); the client places each
     frame by its id, whatever order the three arrive in."""
@@ -166,14 +180,7 @@ def test_matrix_row_frames_are_read_in_any_arrival_order() -> None:
               (0x4, 0x2, 0x3), (0x3, 0x4, 0x2), (0x2, 0x3, 0x4)]
     replies[2:8] = [matrix_frames(base, r, order) for r, order in enumerate(orders)]
     gauge_req = (base << 4 | 0x0, b"")
-    peer, sensor = connect_only(ch, base, replies + [gauge_frames(base, 0, (1,) * 6), []])
-    try:
-        sensor.connect()
-    finally:
-        sensor.close()
-        peer.finish()
-    assert peer.seen == requests + [gauge_req, gauge_req]
-    np.testing.assert_array_equal(sensor.calibration, MATRIX)
+    connect_reads_the_matrix(ch, base, requests, replies, gauge_req)
 
 
 @pytest.mark.parametrize(("missing", "coefficients"),
@@ -212,14 +219,7 @@ def test_stray_frames_during_a_matrix_read_are_ignored() -> None:
     replies[3] = [(b | 0x2, b"\x05"), f3, (b | 0x5, b"SN012345"), (b | 0x0, bytes(8)), f3,
                   (b | 0x9, b"\x01\x02"), f2, f4]
     gauge_req = (b | 0x0, b"")
-    peer, sensor = connect_only(ch, base, replies + [gauge_frames(base, 0, (1,) * 6), []])
-    try:
-        sensor.connect()
-    finally:
-        sensor.close()
-        peer.finish()
-    assert peer.seen == requests + [gauge_req, gauge_req]
-    np.testing.assert_array_equal(sensor.calibration, MATRIX)
+    connect_reads_the_matrix(ch, base, requests, replies, gauge_req)
 
 
 @pytest.mark.parametrize(

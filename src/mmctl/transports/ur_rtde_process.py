@@ -179,22 +179,16 @@ class UrRtdeProcessArm:
             if conn is None:
                 raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.host,
                                   why="not connected")
-            reply: tuple[Any, ...] | None = None
-            gone = False
-            try:
-                # the answer was asked for a period ago; missing, it is rarely worth the
-                # loop's time to wait (a starved child), except for a first sample
-                wait_ms = self.reply_wait * 1e3 if self.last_state is None else 0.0
-                while self._poller.poll(wait_ms):  # (Connection.poll builds a selector)
-                    got = conn.recv()  # answers come in order
-                    if reply is None or reply[-1] is None:
-                        reply = got  # the newest, unless an older one carries a fault
-                    wait_ms = 0.0
+            # the answer was asked for a period ago; missing, it is rarely worth the
+            # loop's time to wait (a starved child), except for a first sample
+            reply, gone = self._drain(conn, None,
+                                      self.reply_wait * 1e3 if self.last_state is None else 0.0)
+            if not gone:
                 self._seq += 1
-                conn.send(("read", self._seq))  # answered before the next cycle
-            except (EOFError, OSError):
-                gone = True  # the child ended: its last answer, if any, says why first
-                reply = self._last_words(conn, reply)
+                try:
+                    conn.send(("read", self._seq))  # answered before the next cycle
+                except OSError:  # the child ended: its last answer, if any, says why first
+                    reply, gone = self._drain(conn, reply)[0], True
             if reply is None and gone:
                 raise self._gone()
             if reply is None:
@@ -247,17 +241,20 @@ class UrRtdeProcessArm:
 
     # -- internals -----------------------------------------------------------------------
 
-    @staticmethod
-    def _last_words(conn: Any, reply: tuple[Any, ...] | None) -> tuple[Any, ...] | None:
-        """Answers a child sent just before it ended (after this read stopped waiting)."""
+    def _drain(self, conn: Any, reply: tuple[Any, ...] | None, wait_ms: float = 0.0
+               ) -> tuple[tuple[Any, ...] | None, bool]:
+        """(answer, gone): every answer there is taken (waiting ``wait_ms`` for the
+        first), the newest kept unless an older one carries a fault; gone when the pipe
+        closed (the answers the child sent before it ended are still taken)."""
         try:
-            while conn.poll(0):
-                got = conn.recv()
+            while self._poller.poll(wait_ms):  # (Connection.poll builds a selector per call)
+                got = conn.recv()  # answers come in order
                 if reply is None or reply[-1] is None:
                     reply = got
+                wait_ms = 0.0
         except (EOFError, OSError):
-            pass
-        return reply
+            return reply, True
+        return reply, False
 
     def _send(self, msg: tuple[Any, ...]) -> None:
         with self._lock:
@@ -268,7 +265,7 @@ class UrRtdeProcessArm:
             try:
                 conn.send(msg)
             except OSError:
-                last = self._last_words(conn, None)  # the child's fault, if it said one
+                last = self._drain(conn, None)[0]  # the child's fault, if it said one
                 if last is not None and last[-1] is not None:
                     raise _rebuild(last[-1]) from None
                 raise self._gone() from None
