@@ -24,14 +24,11 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
                          capsys: pytest.CaptureFixture[str]) -> None:
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
     cfg.setdefault("telemetry", {})["process"] = process
-    tag = loopback_host.replace(".", "-")
-    cfg["sensor"]["can"]["channel"] = f"bench-s-{tag}"
-    cfg["base"]["canopen"]["channel"] = f"bench-b-{tag}"
     path = tmp_path / "bench.yaml"
     path.write_text(yaml.safe_dump(cfg))
     rc = main(["bench", "loop", "--seconds", "1", "--json", "--telemetry", "--config", str(path),
                "--host", loopback_host, "--cpu-dma-latency", "1500", "--telemetry-seconds", "2",
-               "--telemetry-windows", "5"])
+               "--telemetry-windows", "5", "--latency-steps", "4" if process else "0"])
     assert rc == 0
     rep = json.loads(capsys.readouterr().out)
     # the daemon held the PM QoS request for the run (where this machine allows it) and
@@ -64,6 +61,13 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
         assert 0 <= tel["misses_overlapping_publisher_on"] <= tel["misses_on"]
         assert 0 <= tel["misses_overlapping_publisher_off"] <= tel["misses_off"]
     assert rep["targets"]["compute_p99_us"] == 300.0
+    assert 0.0 < rep["idk_step"]["p50_us"] <= rep["idk_step"]["p99_us"]
+    if process:  # force-to-command: each push step answered by a speedJ, after its sample
+        f2c = rep["force_to_command"]
+        assert f2c["steps"] == 4 and f2c["arm_responses"] >= 3, f2c
+        assert 0.0 < f2c["force_to_speedj_p50_us"] <= f2c["force_to_command_p99_us"]
+    else:
+        assert "force_to_command" not in rep
     assert rep["faults"] >= 0 and isinstance(rep["faults"], int)
 
 
@@ -84,8 +88,17 @@ def test_verdict_names_each_target_met_or_not_and_against_sleep() -> None:
     lines = verdict({"targets": TARGETS, "loop": loop, "sleep_baseline": sleep}).splitlines()
     assert lines == [
         "target compute p99 < 300 us: 541 us, NOT met; better than the time.sleep wait (626 us)",
-        "target wake latency p99 < 100 us: 14 us, met; better than the time.sleep wait (76 us)",
-        "target miss rate < 0.5 %: 0.1 %, met; not better than the time.sleep wait (0.09 %)",
+        "target wake latency p99 < 50 us: 14 us, met; better than the time.sleep wait (76 us)",
+        ("target miss rate < 0.05 %: 0.1 %, NOT met; not better than the time.sleep wait "
+         "(0.09 %)"),
+    ]
+    loop["step_p50_us"] = 120.0
+    lines = verdict({"targets": TARGETS, "loop": loop, "sleep_baseline": sleep,
+                     "step_ratio_p50": 1.5, "idk_step": {"p50_us": 80.0},
+                     "force_to_command": {"force_to_command_p99_us": 1500.0}}).splitlines()
+    assert lines[3:] == [
+        "target daemon step p50 < 1.25 x back-to-back step p50: x1.50 (120 vs 80 us), NOT met",
+        "target force-to-command p99 < 2000 us: 1500 us, met",
     ]
 
 

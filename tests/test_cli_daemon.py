@@ -30,6 +30,7 @@ from mmctl.cli import main
 from mmctl.config import load_config
 from mmctl.errors import IpcError
 from mmctl.runtime.ipc import ControlClient, request
+from simconfig import write_sim_config
 
 pytestmark = pytest.mark.timeout(900)
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,6 +51,10 @@ class Proc:
 
     def status(self) -> dict[str, Any]:
         return self.call("status")
+
+    def sim(self, cmd: str, **args: Any) -> Any:
+        """A request to the simulated robot's own control socket."""
+        return request(self.config.parent / "sim.sock", cmd, timeout=60.0, **args)
 
     def drain_notify(self) -> list[str]:
         while True:
@@ -78,17 +83,9 @@ def wait_for(pred: Callable[[], Any], what: str, proc: Proc | None = None,
 
 
 def write_config(tmp: Path, host: str) -> Path:
-    base = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
-    tag = f"{os.getpid()}-{host.replace('.', '-')}"
-    base["name"] = "cli-test"
-    base["arm"]["host"] = host
-    base["sensor"]["can"]["channel"] = f"cli-s-{tag}"
-    base["base"]["canopen"]["channel"] = f"cli-b-{tag}"
-    base["sim"].update({"human": False, "auto_enable": False})
-    base["daemon"] = {"socket_path": str(tmp / "run" / "mmctl.sock")}
-    path = tmp / "daemon.yaml"
-    path.write_text(yaml.safe_dump(base))
-    return path
+    return write_sim_config(host, tmp, {
+        "name": "cli-test", "sim": {"human": False, "auto_enable": False},
+        "daemon": {"socket_path": str(tmp / "run" / "mmctl.sock")}})
 
 
 def spawn(cfg: Path, out: Path, env: dict[str, str], *extra: str) -> subprocess.Popen[bytes]:
@@ -156,6 +153,44 @@ def test_malformed_and_unknown_requests_get_errors(daemon: Proc) -> None:
         assert c.call("status")["state"] == "disarmed"  # carries on, same connection
 
 
+def _listening_tcp(pid: int) -> list[str]:
+    """The TCP ports process ``pid`` listens on (its socket inodes in /proc/net/tcp)."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    ports = []
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] == "0A" and f[9] in inodes:  # LISTEN
+                ports.append(f[1])
+    return ports
+
+
+def test_the_daemons_process_holds_no_simulation(daemon: Proc) -> None:
+    """The simulated robot runs in its own process: the daemon's holds no fake, no
+    simulated person, serves no device port, and never imported the simulation."""
+    st = daemon.status()
+    proc = st["process"]
+    assert proc["pid"] == daemon.proc.pid
+    assert proc["simulation_loaded"] is False
+    # the loop, the control socket, the canopen master's notifier and heartbeat: nothing
+    # of the simulation's (its person, fakes, socketcand server threads)
+    known = ("MainThread", "mmctl-loop", "mmctl-ipc", "Notifier for bus", "Cyclic send task")
+    assert all(t.startswith(known) for t in proc["threads"]), proc
+    assert not [t for t in proc["threads"] if "sim" in t or "fake" in t], proc
+    assert _listening_tcp(daemon.proc.pid) == []  # RTDE, dashboard, socketcand: elsewhere
+    sim = daemon.sim("status")
+    assert sim["pid"] == st["sim"]["pid"] != daemon.proc.pid and st["sim"]["owned"]
+    assert sim["socketcand"]["clients"] == 2  # the daemon's sensor and its canopen master
+    assert _listening_tcp(sim["pid"])  # the socketcand server
+
+
 def test_second_daemon_refuses_to_start(daemon: Proc, tmp_path: Path) -> None:
     out = tmp_path / "second.log"
     second = spawn(daemon.config, out, {**os.environ, "NOTIFY_SOCKET": ""})
@@ -178,7 +213,7 @@ def test_enable_and_a_push_moves_the_end_effector_that_way(daemon: Proc) -> None
     assert daemon.status()["state"] == "armed"
     p0 = _ee(daemon)
     push = np.array([0.0, 25.0, 0.0])  # +y in the world
-    daemon.call("sim", push=push.tolist())
+    daemon.sim("push", force=push.tolist())
     moved = _moves(daemon, p0, 0.05, "the end-effector to move 5 cm")
     assert moved[1] > 3 * abs(moved[0]) and moved[1] > 3 * abs(moved[2]), moved
     assert daemon.status()["state"] == "armed"
@@ -196,7 +231,8 @@ def _armed(daemon: Proc) -> bool:
         assert st["fault"] in LOAD_FLAKES, st
         wait_for(lambda: _enable_ok(daemon), "enable after a load fault", daemon)
         st = daemon.status()
-    return bool(st["state"] == "armed")
+    assert st["state"] == "armed", (st, daemon.log_text()[-3000:])
+    return True
 
 
 def _moves(daemon: Proc, p0: np.ndarray, dy: float, what: str) -> np.ndarray:
@@ -235,7 +271,7 @@ def test_mode_changes_at_run_time(daemon: Proc, capsys: pytest.CaptureFixture[st
     assert _armed(daemon)
     st = daemon.status()
     assert st["mode"] == "switch" and st["switch"] == "locomotion"
-    daemon.call("sim", press=True)  # the handle button (simulated digital input) toggles
+    daemon.sim("press")  # the handle button (the fake UR's tool input) toggles
     wait_for(lambda: daemon.status()["switch"] == "manipulation", "the button's toggle", daemon)
     assert main(["mode", "min-energy", *sock]) == 0
     capsys.readouterr()

@@ -1,7 +1,9 @@
 """Every SPEC §5 fault, injected through the fakes, stops the robot in the same cycle.
 
-One daemon runs in-process on the simulated robot (fake UR controller process, fake CAN
-sensor, fake CiA 402 drives) through the real transports; the tests drive it cycle by
+One daemon runs in-process next to the simulated robot's fakes (fake UR controller
+process, fake CAN sensor and CiA 402 drives on python-can's in-process virtual bus: the
+test steps the daemon by hand, so the fakes' threads cannot disturb its timing)
+through the real transports; the tests drive it cycle by
 cycle with ``Daemon.step_once`` so that "within one period" is checked on the fakes'
 command logs, not on a clock: the cycle that detects the fault sends no speedJ and no
 base twist, and the first arm command the fake UR receives from that cycle on is a
@@ -30,6 +32,7 @@ from mmctl.runtime.daemon import Daemon
 from mmctl.runtime.factory import create_daemon
 from mmctl.runtime.safety import EnableRefused, SafetyState
 from mmctl.sim.fake_ur import CommandKind
+from mmctl.sim.world import SimWorld
 from mmctl.types import Wrench
 from waiting import wait_for
 
@@ -49,10 +52,7 @@ def _host() -> str:
 class World:
     cfg: Config
     daemon: Daemon
-
-    @property
-    def sim(self) -> Any:
-        return self.daemon.sim
+    sim: SimWorld
 
     def arm_log(self) -> list[Any]:
         kinds = (CommandKind.SPEEDJ, CommandKind.SPEED_STOP)
@@ -129,9 +129,16 @@ def world() -> Iterator[World]:
             "interface": "virtual", "channel": f"flt-b-{uid}", "heartbeat_timeout": 0.5},
                  "command_watchdog": 1.0},
     })
+    sim = SimWorld(cfg)
+    sim.start()
     daemon = create_daemon(cfg, socket_path=None)
-    daemon.open()
-    w = World(cfg, daemon)
+    assert daemon.sim is None  # virtual CAN: the fakes are this test's, not a process's
+    try:
+        daemon.open()
+    except BaseException:
+        sim.close()
+        raise
+    w = World(cfg, daemon, sim)
     try:
         step(w, 3)
         daemon.call("tare")
@@ -139,6 +146,7 @@ def world() -> Iterator[World]:
         yield w
     finally:
         daemon.shutdown()
+        sim.close()
 
 
 #: Causes a loaded 2-core machine can produce on its own (a starved fake or thread).

@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 import pytest
-import yaml
 
 from mmctl.errors import IpcError
 from mmctl.runtime.ipc import request
+from simconfig import write_sim_config
 
 pytestmark = pytest.mark.timeout(600)
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,17 +39,11 @@ class Daemon:
     def __init__(self, tmp: Path, own_group: bool = False) -> None:
         digits = "".join(c for c in os.environ.get("PYTEST_XDIST_WORKER", "gw0") if c.isdigit())
         host = f"127.{10 + int(digits or 0)}.{203 + os.getpid() % 40}.{next(_hosts)}"
-        cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
-        tag = f"{os.getpid()}-{host.replace('.', '-')}"
-        cfg["name"] = "stop-path-test"
-        cfg["arm"]["host"] = host
-        cfg["sensor"]["can"]["channel"] = f"sp-s-{tag}"
-        cfg["base"]["canopen"]["channel"] = f"sp-b-{tag}"
-        cfg["sim"].update({"human": False, "auto_enable": False})
         self.socket = tmp / "run" / "mmctl.sock"
-        cfg["daemon"] = {"socket_path": str(self.socket)}
-        self.config = tmp / "daemon.yaml"
-        self.config.write_text(yaml.safe_dump(cfg))
+        self.config = write_sim_config(host, tmp, {
+            "name": "stop-path-test", "sim": {"human": False, "auto_enable": False},
+            "daemon": {"socket_path": str(self.socket)}})
+        self.sim_socket = tmp / "sim.sock"
         self.sim_log = tmp / "simlog"
         self.out = tmp / "daemon.log"
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -63,6 +57,10 @@ class Daemon:
 
     def call(self, cmd: str, **args: Any) -> Any:
         return request(self.socket, cmd, timeout=60.0, **args)
+
+    def sim(self, cmd: str, **args: Any) -> Any:
+        """A request to the simulated robot's own control socket (`mmctl sim ...`)."""
+        return request(self.sim_socket, cmd, timeout=60.0, **args)
 
     def log_text(self) -> str:
         return self.out.read_text(errors="replace")
@@ -94,7 +92,7 @@ class Daemon:
         its own (a starved loop or arm process) is followed by another enable."""
         self.call("tare")
         self.wait_for(lambda: not self.call("status")["taring"], "the tare")
-        self.call("sim", push=push)
+        self.sim("push", force=push)
         for _attempt in range(5):
             self.wait_for(lambda: self._enabled(), "enable")
             p0 = self.handle()
@@ -114,7 +112,7 @@ class Daemon:
     def handle(self) -> np.ndarray:
         """The handle's true position in the world [m] (the simulation's, from the fake
         controller's joints and the fake drives)."""
-        return np.array(self.call("status")["sim"]["handle_world"])
+        return np.array(self.sim("status")["handle_world"])
 
     def ur_log(self) -> list[dict[str, Any]]:
         return [json.loads(line) for line in (self.sim_log / "ur_commands.jsonl").open()]
@@ -142,29 +140,33 @@ def _stop_commands_after_motion(ur: list[dict[str, Any]]) -> list[dict[str, Any]
 
 
 def test_a_frozen_daemon_leaves_the_arm_at_rest(daemon: Daemon) -> None:
-    """SIGSTOP the armed daemon while a push moves the arm: the controller's RTDE
-    watchdog stops the program and the arm, although the daemon sends nothing.  The
-    arm's joints are read from the fake controller's own process (they move on while
-    the daemon is stopped; the base's fakes share the daemon's process and stop)."""
+    """SIGSTOP the armed daemon while a push moves the arm and the base: the
+    controller's RTDE watchdog stops the program and the arm, and the drives' own
+    watchdogs stop the wheels, although the daemon sends nothing.  Joints and wheels
+    are read from the simulated robot's processes, which run on while the daemon is
+    stopped."""
     for _attempt in range(5):  # a fault the machine's load causes: arm and push again
-        daemon.arm_and_push([0.0, 25.0, 0.0])
+        daemon.arm_and_push([0.0, 60.0, 0.0])
         time.sleep(0.5)
-        full = daemon.call("status")
-        st = full["sim"]
+        full, st = daemon.call("status"), daemon.sim("status")
         q0, speed = np.array(st["arm_q"]), float(np.abs(st["arm_qd"]).max())
-        if full["state"] == "armed" and speed > 0.02:
+        wheels = float(np.abs(st["wheel_velocities"]).max())
+        if full["state"] == "armed" and speed > 0.02 and wheels > 0.05:
             break
-    assert speed > 0.02, st
+    assert speed > 0.02 and wheels > 0.05, st
     os.kill(daemon.proc.pid, signal.SIGSTOP)
     frozen = 3.0
     time.sleep(frozen)
+    st = daemon.sim("status")  # the daemon is still stopped
     os.kill(daemon.proc.pid, signal.SIGCONT)
-    st = daemon.wait_for(lambda: daemon.call("status"), "the socket after SIGCONT")
-    travel = float(np.abs(np.array(st["sim"]["arm_q"]) - q0).max())
-    print(f"fastest joint {speed:.3f} rad/s before the freeze; its travel during a "
-          f"{frozen} s freeze: {travel:.4f} rad (without a watchdog: ~{speed * frozen:.2f} rad)")
+    travel = float(np.abs(np.array(st["arm_q"]) - q0).max())
+    print(f"fastest joint {speed:.3f} rad/s, fastest wheel {wheels:.2f} rad/s before the "
+          f"freeze; joint travel during a {frozen} s freeze: {travel:.4f} rad (without a "
+          f"watchdog: ~{speed * frozen:.2f} rad); wheels after it: {st['wheel_velocities']}")
     assert travel < 0.25 * speed * frozen
-    assert not any(st["sim"]["arm_qd"])  # at rest
+    assert not any(st["arm_qd"])  # at rest
+    assert not any(st["wheel_velocities"]), st  # the drives quick-stopped by themselves
+    daemon.wait_for(lambda: daemon.call("status"), "the socket after SIGCONT")
     daemon.wait_for(lambda: "arm_not_playing" in daemon.call("status")["conditions"],
                     "the daemon to find the stopped program")
     daemon.proc.send_signal(signal.SIGTERM)
@@ -199,7 +201,8 @@ def test_ctrl_c_reaches_only_the_daemon_which_stops_the_robot_first(tmp_path: Pa
     try:
         d.ready()
         d.arm_and_push([0.0, 25.0, 0.0])
-        ur_pid = d.call("status")["sim"]["ur_pid"]
+        ur_pid = d.sim("status")["ur_pid"]
+        sim_pid = d.call("status")["sim"]["pid"]
         os.killpg(d.proc.pid, signal.SIGINT)
         assert d.proc.wait(120) == 0, d.log_text()[-3000:]
     finally:
@@ -209,8 +212,9 @@ def test_ctrl_c_reaches_only_the_daemon_which_stops_the_robot_first(tmp_path: Pa
     assert "arm_stop_not_sent" not in text, text[-3000:]
     after = _stop_commands_after_motion(d.ur_log())
     assert after and all(c["kind"] == "speed_stop" or not any(c["qd"]) for c in after), after
-    with pytest.raises(ProcessLookupError):
-        os.kill(ur_pid, 0)  # the daemon ended the fake controller after the stop
+    for pid in (ur_pid, sim_pid):  # the daemon ended the simulated robot after the stop
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
 
 
 def _armed(d: Daemon) -> bool:
@@ -225,7 +229,7 @@ def test_an_enable_reported_as_failed_never_takes_effect_later(daemon: Daemon) -
     daemon.call("tare")
     daemon.wait_for(lambda: not daemon.call("status")["taring"], "the tare")
     daemon.wait_for(lambda: daemon._enabled(), "enable")
-    daemon.call("sim", fault="arm_not_playing")
+    daemon.sim("fault", name="arm_not_playing")
     daemon.wait_for(lambda: daemon.call("status")["state"] == "fault", "the fault")
     cycles = daemon.call("status")["cycles"]
     with pytest.raises(IpcError):
@@ -246,7 +250,7 @@ def test_an_enable_reported_as_failed_never_takes_effect_later(daemon: Daemon) -
 
 
 def test_sigterm_during_a_reconnect_stops_at_once(daemon: Daemon) -> None:
-    daemon.call("sim", fault="arm_not_playing")
+    daemon.sim("fault", name="arm_not_playing")
     daemon.wait_for(lambda: "arm_not_playing" in daemon.call("status")["conditions"],
                     "the condition")
     box: list[BaseException | None] = []

@@ -18,6 +18,7 @@ from mmctl.telemetry import layout
 from mmctl.telemetry.recording import column_name, load_recording, recording_metrics
 from mmctl.telemetry.rerun_sink import Destinations
 from mmctl.telemetry.service import TelemetryService
+from simconfig import sim_config
 from waiting import wait_for
 
 WAIT = 90.0  # generous: a loaded machine starts the fake UR process slowly
@@ -36,13 +37,7 @@ def _status(sock: Path) -> dict[str, Any] | None:
 
 @pytest.mark.timeout(300)
 def test_daemon_records_trial_and_metrics_match(tmp_path: Path, loopback_host: str) -> None:
-    tag = loopback_host.replace(".", "-")
-    cfg = config_from_dict({
-        "arm": {"host": loopback_host},
-        "sensor": {"can": {"channel": f"tel-ft-{tag}"}},
-        "base": {"canopen": {"channel": f"tel-base-{tag}"}},
-        "telemetry": {"scene_rate": 20.0},
-    })
+    cfg = config_from_dict(sim_config(loopback_host, tmp_path, {"telemetry": {"scene_rate": 20.0}}))
     rrd = tmp_path / "run.rrd"
     sock = tmp_path / "mmctl.sock"
     service = TelemetryService(cfg, Destinations(record=str(rrd)))

@@ -24,6 +24,7 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("study", "mmctl.commands.study", "reproduce the paper's 27-user study in simulation"),
     ("fake-ur", "mmctl.commands.fake_ur", "run a fake UR10e controller on a loopback address"),
     ("run", "mmctl.commands.run", "run the control daemon (default: the simulated robot)"),
+    ("sim", "mmctl.commands.sim", "run the simulated robot, or push/fault/status a running one"),
     ("status", "mmctl.commands.status", "show the daemon's state, mode, fault and loop timing"),
     ("enable", "mmctl.commands.enable", "arm the robot (refused while a fault is present)"),
     ("disable", "mmctl.commands.disable", "disarm: stop the arm and the base"),

@@ -1,9 +1,15 @@
 """Run the control daemon (foreground; Ctrl-C or `mmctl stop` ends it).
 
-Without --config it uses $MMCTL_CONFIG, else ./config/sim.yaml, else the built-in
-defaults: the simulated robot (fake UR controller, CAN sensor, CANopen drives and a
-simulated person pushing the handle), armed automatically so it moves within seconds.
-With config/robot.yaml it drives the real robot and starts DISARMED: `mmctl enable`.
+Without --config it uses $MMCTL_CONFIG, else ./config/sim.yaml: the simulated robot
+(fake UR controller, CAN sensor, CANopen drives and a simulated person pushing the
+handle), in a process of its own (`mmctl sim`): the daemon attaches to one that
+answers, or starts its own and stops it after the robot stopped.  It arms itself, so
+the robot moves within seconds.  With config/robot.yaml it drives the real robot and
+starts DISARMED: `mmctl enable`.
+
+On a terminal a live block shows state, mode, fault, wrench, speeds, kinetic energy
+and loop timing, with the log lines scrolling above it (--no-live: plain lines).
+Push the simulated handle yourself from another terminal: `mmctl sim push 30 0 0`.
 """
 
 from __future__ import annotations
@@ -25,6 +31,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", metavar="ADDR",
                    help="telemetry: stream to a running rerun viewer (HOST:PORT or URL)")
     p.add_argument("--record", metavar="FILE", help="telemetry: save a .rrd recording")
+    p.add_argument("--no-live", action="store_true",
+                   help="no live status block on a terminal (plain log lines)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    import sys
     from pathlib import Path
 
     from mmctl.runtime.client import load
@@ -54,4 +63,13 @@ def _run(args: argparse.Namespace) -> int:
                                                         connect=args.connect, record=args.record))
     daemon = create_daemon(cfg, socket_path, sim_log=Path(args.sim_log) if args.sim_log else None,
                            telemetry=telemetry)
-    return daemon.run(duration=args.duration)
+    view = None
+    if sys.stdout.isatty() and not args.log_json and not args.no_live:
+        from mmctl.runtime.liveview import LiveView
+
+        view = LiveView(daemon.live, stderr=True).start()  # before any child: theirs too
+    try:
+        return daemon.run(duration=args.duration)
+    finally:
+        if view is not None:
+            view.stop()

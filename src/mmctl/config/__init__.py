@@ -14,7 +14,7 @@ from typing import Any
 import yaml
 
 from mmctl.config.arm import ArmConfig
-from mmctl.config.base import BaseConfig
+from mmctl.config.base import BaseConfig, CanopenConfig
 from mmctl.config.control import AdmittanceConfig, IdkConfig, LimitsConfig
 from mmctl.config.robot import RobotConfig
 from mmctl.config.runtime import (
@@ -25,7 +25,7 @@ from mmctl.config.runtime import (
     TelemetryConfig,
 )
 from mmctl.config.schema import build, param, section, sub, to_dict
-from mmctl.config.sensor import SensorConfig
+from mmctl.config.sensor import SensorCanConfig, SensorConfig
 from mmctl.errors import ConfigError
 
 __all__ = ["Config", "ConfigError", "config_from_dict", "default_config", "load_config", "to_dict"]
@@ -48,6 +48,29 @@ class Config:
     telemetry: TelemetryConfig = sub(TelemetryConfig)
     sim: SimConfig = sub(SimConfig)
     name: str = param("mmctl", doc="a label for logs and recordings")
+
+    def validate(self, path: str, source: str | None) -> None:
+        """The simulated robot serves CAN where the CAN sections look for it."""
+        if not self.sim.enabled:
+            return
+        links: list[tuple[str, CanopenConfig | SensorCanConfig]] = (
+            [("base.canopen", self.base.canopen)] if self.base.transport == "canopen" else [])
+        if self.sensor.transport == "can":
+            links.append(("sensor.can", self.sensor.can))
+        for key, link in links:
+            if link.interface == "socketcand":
+                if link.host != self.sim.host:
+                    raise ConfigError(f"{key}.host", link.host, "must be sim.host "
+                                      f"({self.sim.host}): the simulated robot serves CAN "
+                                      "there (sim.enabled is true)", source)
+                if link.port != self.sim.can_port:
+                    raise ConfigError(f"{key}.port", link.port, "must be sim.can_port "
+                                      f"({self.sim.can_port}) (sim.enabled is true)", source)
+            elif link.interface != "virtual":
+                raise ConfigError(f"{key}.interface", link.interface,
+                                  "must be 'socketcand' (the simulated robot's own process) "
+                                  "or 'virtual' (fakes in the same process: tests) while "
+                                  "sim.enabled is true", source)
 
 
 def config_from_dict(data: Any, source: str | None = None) -> Config:

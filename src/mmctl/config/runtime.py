@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Literal
 
 from mmctl.config.schema import param, section
+from mmctl.errors import ConfigError
 
 
 @section
@@ -98,11 +99,37 @@ class TelemetryConfig:
 
 @section
 class SimConfig:
-    """The simulated robot `mmctl run` uses when no hardware is configured."""
+    """The simulated robot (`mmctl sim`, its own process) that `mmctl run` drives when
+    no hardware is configured."""
 
-    enabled: bool = param(True, doc="start the fakes (UR controller, sensor, drives, human)")
+    enabled: bool = param(
+        True, doc="this configuration drives the simulated robot: `mmctl run` attaches to "
+        "the `mmctl sim` answering on sim.socket_path, or starts one as its child")
     human: bool = param(True, doc="a simulated person pushes the handle")
     auto_enable: bool = param(
         True, doc="arm the simulated robot after start-up (ignored unless sim.enabled)"
     )
     human_seed: int = param(0, ge=0, doc="which simulated person (seeded parameters)")
+    host: str = param(
+        "127.0.0.2", min_len=1,
+        doc="loopback address the simulated robot serves CAN on (socketcand); the CAN "
+        "sections on 'socketcand' name it as their host")
+    can_port: int = param(29536, gt=0, le=65535, doc="its socketcand port (socketcand's default)")
+    socket_path: str = param(
+        "", doc="the simulation's control socket (`mmctl sim status|push|fault|person`); "
+        "'' = next to the daemon's: $RUNTIME_DIRECTORY, $XDG_RUNTIME_DIR or /tmp/mmctl-$UID, "
+        "+ mmctl-sim.sock")
+    ready_timeout: float = param(
+        60.0, unit="s", gt=0.0, doc="how long `mmctl run` waits for the `mmctl sim` it started")
+
+    def validate(self, path: str, source: str | None) -> None:
+        import ipaddress
+
+        try:
+            loopback = ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            loopback = False
+        if not loopback:
+            raise ConfigError(f"{path}.host" if path else "host", self.host,
+                              "must be a loopback address (127.0.0.0/8 or ::1): the "
+                              "simulated robot never serves beyond this machine", source)

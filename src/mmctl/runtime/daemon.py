@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import gc
 import math
+import os
 import queue
 import signal
 import sys
@@ -72,14 +73,19 @@ _LINK_CAUSE = {"arm": FaultCause.ARM_DISCONNECTED, "sensor": FaultCause.SENSOR_L
                "base": FaultCause.BASE_LINK}
 
 
+class StartAborted(Exception):
+    """A stop request arrived while :meth:`Daemon.open` was still starting."""
+
+
 class Daemon:
     """Composition root of the running daemon (see the module docstring).
 
     cfg: the configuration; devices: not yet connected; core: the control chain;
     socket_path: where to serve the control socket (None = no socket, for in-process
-    tests); notifier: systemd notify (default: from the environment); sim: the
-    simulated world when running without hardware (anything with ``status()``,
-    ``start_human()``, ``command(req)`` and ``close()``), or None; telemetry: a
+    tests); notifier: systemd notify (default: from the environment); sim: the link
+    to the simulated robot's own process (a :class:`~mmctl.runtime.sim_link.SimLink`:
+    ``start(should_stop)``, ``start_human()``, ``hold(seconds)``, ``status()``,
+    ``close()``), or None; telemetry: a
     :class:`~mmctl.telemetry.service.TelemetryService` (its hook becomes
     :attr:`sample_hook`, ``trial`` requests go to it), or None.
     """
@@ -144,7 +150,9 @@ class Daemon:
             self.server.open()
         try:
             if self.sim is not None:
-                self.sim.start()
+                self.sim.start(self._stop_requested.is_set)
+                if self._stop_requested.is_set():
+                    raise StartAborted("stopped while the simulated robot started")
             self.devices.connect()
         except BaseException:
             if self.server is not None:
@@ -198,6 +206,8 @@ class Daemon:
                     self.stop_reason = "duration"
                     break
                 self._stop_requested.wait(left)
+        except StartAborted:
+            pass  # a signal during start-up: nothing moved; shut down what was opened
         except BaseException as exc:
             self.stop_reason = self.stop_reason or f"error: {exc}"
             raise
@@ -341,6 +351,7 @@ class Daemon:
             which = _arg(req, "to", str)
             return self._on_loop(lambda: self._set_switch(which))
         if cmd == "tare":
+            self._hands_off_for_tare()
             return self._on_loop(self._tare)
         if cmd == "stop":
             self.request_stop("mmctl stop")
@@ -349,12 +360,20 @@ class Daemon:
             if self.telemetry is None:
                 raise MmctlError("'trial' needs the telemetry service")
             return self.telemetry.command(req, self._on_loop, self)
-        if cmd == "sim":
-            if self.sim is None:
-                raise MmctlError("'sim' commands need the simulated robot (sim.enabled)")
-            return self.sim.command(req)
         raise MmctlError(f"unknown command {cmd!r}; known: status, enable, disable, mode, "
-                         "switch, tare, stop, trial, sim")
+                         "switch, tare, stop, trial")
+
+    def _hands_off_for_tare(self) -> None:
+        """Simulated robot: the person lets go of the handle while the sensor is tared
+        (an operator does; the tare must not absorb a push)."""
+        if self.sim is None or self.safety.armed:
+            return
+        w = self.cfg.sensor.wrench
+        seconds = 0.3 + 2.0 * w.tare_samples / self.cfg.loop.rate_hz
+        try:
+            self.sim.hold(seconds)
+        except MmctlError as exc:
+            log.warning("sim_hold_failed", error=str(exc))
 
     def _enable_request(self, budget: float) -> dict[str, Any]:
         """Operator re-arm within ``budget`` [s]: the checks and the arming run on the
@@ -668,6 +687,45 @@ class Daemon:
             out["sim"] = self.sim.status()
         if self.telemetry is not None:
             out["telemetry"] = self.telemetry.status()
+        out["process"] = {
+            "pid": os.getpid(), "threads": sorted(t.name for t in threading.enumerate()),
+            # on the robot and on the simulated robot alike: no simulation code in here
+            "simulation_loaded": any(m in sys.modules for m in ("mmctl.sim", "mmctl.study")),
+        }
+        return out
+
+
+    def live(self) -> dict[str, Any]:
+        """The live terminal view's snapshot (:mod:`mmctl.runtime.liveview`; any thread,
+        a few times a second: the last second of loop timing, the newest cycle)."""
+        stats = self.ring.stats(min(self.ring.size, int(self.cfg.loop.rate_hz)))
+        out: dict[str, Any] = {
+            "state": self.safety.state.value, "mode": self.core.mode,
+            "fault": self.safety.as_dict().get("fault"), "taring": self.core.taring,
+            "cycles": self.cycles, "uptime_s": time.monotonic() - self._started,
+            "loop": {"rate_hz": self.cfg.loop.rate_hz, "total_misses": self.loop.total_misses,
+                     **stats.as_dict()},
+        }
+        last = self.last
+        if last is not None:
+            out.update(f_h=[float(x) for x in last.f_h],
+                       ee_speed=float(np.linalg.norm(last.v_d[:3])),
+                       base_speed=float(np.hypot(last.qd[6], last.qd[7])),
+                       base_yaw_rate=float(last.qd[8]),
+                       energy_arm=float(last.energy.arm), energy_base=float(last.energy.base))
+        if self.sim is not None and self.sim.closed:
+            out["sim"] = {"person": "stopped"}
+        elif self.sim is not None:
+            try:
+                st = self.sim.call("status", timeout=0.5)
+                out["sim"] = {"person": st.get("person"), "faults": st.get("faults")}
+            except MmctlError as exc:
+                out["sim"] = {"person": f"unreachable ({exc})"}
+        if self.sim is not None:
+            out["hint"] = ("mmctl sim push 30 0 0 · mmctl sim person off|on · "
+                           "mmctl sim fault --list · Ctrl-C stops")
+        else:
+            out["hint"] = "mmctl status · mmctl disable · Ctrl-C stops"
         return out
 
 

@@ -31,16 +31,6 @@ class Button(Protocol):
     def pressed(self) -> bool: ...
 
 
-class InjectedButton:
-    """A button whose state someone sets (the simulated person, a test, ``mmctl`` sim)."""
-
-    def __init__(self) -> None:
-        self.state = False
-
-    def pressed(self) -> bool:
-        return self.state
-
-
 class ArmDigitalInput:
     """A UR digital input read through the arm transport's ``digital_input(index)``."""
 

@@ -1,8 +1,10 @@
 """Build a :class:`~mmctl.runtime.daemon.Daemon` from a configuration.
 
-With ``sim.enabled`` the simulated world (fake UR controller process, fake CAN sensor,
-fake CANopen drives, simulated person) is created too; the devices are the *real*
-transports either way.
+The devices are the *real* transports either way.  With ``sim.enabled`` the daemon
+also gets a :class:`~mmctl.runtime.sim_link.SimLink`: it attaches to the simulated
+robot's own process (`mmctl sim`) or starts one.  Configurations whose CAN links are
+python-can's in-process ``virtual`` bus get none: whoever built them runs the fakes
+in the same process (tests that step the daemon cycle by cycle).
 """
 
 from __future__ import annotations
@@ -17,21 +19,32 @@ from mmctl.runtime.devices import open_devices
 from mmctl.runtime.notify import Notifier
 
 
+def in_process_sim(cfg: Config) -> bool:
+    """True when a CAN link of the simulated robot is the in-process ``virtual`` bus."""
+    links: list[Any] = [cfg.base.canopen] if cfg.base.transport == "canopen" else []
+    if cfg.sensor.transport == "can":
+        links.append(cfg.sensor.can)
+    return any(link.interface == "virtual" for link in links)
+
+
 def create_daemon(cfg: Config, socket_path: Path | None, *, sim_log: Path | None = None,
-                  notifier: Notifier | None = None, telemetry: Any = None) -> Daemon:
+                  notifier: Notifier | None = None, telemetry: Any = None,
+                  attach_sim: bool | None = None) -> Daemon:
     """The daemon for ``cfg`` (nothing started or connected yet).
 
     telemetry: a :class:`~mmctl.telemetry.service.TelemetryService`; default: one built
     from ``cfg.telemetry`` (publishing nothing unless a destination is configured).
+    attach_sim: link to (or start) `mmctl sim`; default: ``sim.enabled`` unless the
+    CAN links are in-process (:func:`in_process_sim`).
     """
+    if attach_sim is None:
+        attach_sim = cfg.sim.enabled and not in_process_sim(cfg)
     sim = None
-    button = None
-    if cfg.sim.enabled:
-        from mmctl.runtime.sim_world import SimWorld
+    if attach_sim:
+        from mmctl.runtime.sim_link import SimLink
 
-        sim = SimWorld(cfg, log_dir=sim_log)
-        button = sim.button
-    devices = open_devices(cfg, button=button)
+        sim = SimLink(cfg, log_dir=sim_log)
+    devices = open_devices(cfg)
     core = ControlCore(cfg)
     if telemetry is None:
         from mmctl.telemetry.service import TelemetryService, destinations_from

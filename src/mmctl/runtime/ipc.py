@@ -22,7 +22,7 @@ import struct
 import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import structlog
 
@@ -49,23 +49,25 @@ class Peer(NamedTuple):
 Handler = Callable[[Mapping[str, Any], Peer], Any]
 
 
-def resolve_socket_path(configured: str = "", environ: Mapping[str, str] | None = None) -> Path:
+def resolve_socket_path(configured: str = "", environ: Mapping[str, str] | None = None,
+                        name: str = SOCKET_NAME) -> Path:
     """Where the control socket lives.
 
     configured path if given; else ``$RUNTIME_DIRECTORY/mmctl.sock`` (the systemd
     service), ``$XDG_RUNTIME_DIR/mmctl.sock`` (a user session) or
-    ``/tmp/mmctl-$UID/mmctl.sock``.
+    ``/tmp/mmctl-$UID/mmctl.sock`` (``name``: another file in the same place, e.g. the
+    simulated robot's ``mmctl-sim.sock``).
     """
     env = os.environ if environ is None else environ
     if configured:
         return Path(configured).expanduser()
     runtime_dir = env.get("RUNTIME_DIRECTORY", "").split(":")[0]
     if runtime_dir:
-        return Path(runtime_dir) / SOCKET_NAME
+        return Path(runtime_dir) / name
     xdg = env.get("XDG_RUNTIME_DIR")
     if xdg:
-        return Path(xdg) / SOCKET_NAME
-    return Path(f"/tmp/mmctl-{os.getuid()}") / SOCKET_NAME
+        return Path(xdg) / name
+    return Path(f"/tmp/mmctl-{os.getuid()}") / name
 
 
 def peer_credentials(conn: socket.socket) -> Peer:
@@ -261,9 +263,14 @@ def _json_default(o: Any) -> Any:
 class ControlClient:
     """A connection to the daemon; ``call(cmd, **args)`` returns the result or raises IpcError."""
 
-    def __init__(self, path: Path | str, timeout: float = 10.0):
+    def __init__(self, path: Path | str, timeout: float = 10.0, absent: str | None = None,
+                 max_reply: int = MAX_LINE):
         self.path = Path(path)
         self.timeout = timeout
+        #: the longest reply line accepted [bytes] (the simulation's logs are long)
+        self.max_reply = max_reply
+        #: the error when nothing listens (default: no daemon, start `mmctl run`)
+        self.absent = absent
         self._sock: socket.socket | None = None
         self._rfile: Any = None
 
@@ -274,8 +281,8 @@ class ControlClient:
             s.connect(str(self.path))
         except (FileNotFoundError, ConnectionRefusedError):
             s.close()
-            raise IpcError(f"no mmctl daemon is running (nothing listens on {self.path}); "
-                           "start one with `mmctl run`") from None
+            raise IpcError(self.absent or f"no mmctl daemon is running (nothing listens on "
+                           f"{self.path}); start one with `mmctl run`") from None
         except PermissionError:
             s.close()
             raise IpcError(f"permission denied on {self.path}: join the socket's group "
@@ -303,7 +310,7 @@ class ControlClient:
         assert self._sock is not None
         try:
             self._sock.sendall(line if line.endswith(b"\n") else line + b"\n")
-            reply = self._rfile.readline(MAX_LINE + 1)
+            reply = self._rfile.readline(self.max_reply + 1)
         except TimeoutError:
             raise IpcError(f"the daemon on {self.path} did not answer within "
                            f"{self.timeout:g} s") from None
@@ -311,7 +318,13 @@ class ControlClient:
             raise IpcError(f"the daemon on {self.path} closed the connection") from None
         if not reply:
             raise IpcError(f"the daemon on {self.path} closed the connection")
-        return json.loads(reply)
+        if not reply.endswith(b"\n"):
+            self.close()  # the rest of that line would be read as the next reply
+            raise IpcError(f"the reply from {self.path} is longer than {self.max_reply} bytes")
+        try:
+            return cast(dict[str, Any], json.loads(reply))
+        except ValueError:
+            raise IpcError(f"the reply from {self.path} is not JSON: {reply[:80]!r}") from None
 
     def call(self, cmd: str, **args: Any) -> Any:
         """One request; returns ``result`` or raises :class:`IpcError` with the daemon's error."""
@@ -323,7 +336,8 @@ class ControlClient:
         return reply.get("result")
 
 
-def request(path: Path | str, cmd: str, timeout: float = 10.0, **args: Any) -> Any:
-    """Open, send one request, close."""
-    with ControlClient(path, timeout) as c:
+def request(path: Path | str, cmd: str, timeout: float = 10.0, absent: str | None = None,
+            max_reply: int = MAX_LINE, **args: Any) -> Any:
+    """Open, send one request, close (``absent``, ``max_reply``: see :class:`ControlClient`)."""
+    with ControlClient(path, timeout, absent, max_reply) as c:
         return c.call(cmd, **args)

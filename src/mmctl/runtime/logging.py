@@ -19,8 +19,9 @@ _LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warning": logging.WARN
 
 
 CURRENT: tuple[str, bool | None] = ("info", None)
-"""(level, json) of the newest :func:`setup_logging` on stdout: what a child process
-of the daemon (the arm's) sets up in turn, so its events join the daemon's stream."""
+"""(level, json) of the newest :func:`setup_logging`: what a child process of the daemon
+(the arm's, the simulated robot's) sets up in turn on the stdout it inherits, so its
+events join the daemon's stream."""
 
 
 def setup_logging(level: str = "info", stream: TextIO | None = None,
@@ -33,9 +34,8 @@ def setup_logging(level: str = "info", stream: TextIO | None = None,
     out = stream if stream is not None else sys.stdout
     if json is None:
         json = not (hasattr(out, "isatty") and out.isatty())
-    if stream is None:
-        global CURRENT
-        CURRENT = (level, json)
+    global CURRENT
+    CURRENT = (level, json)
     renderer: Any = (structlog.processors.JSONRenderer() if json
                      else structlog.dev.ConsoleRenderer(colors=False))
     structlog.configure(

@@ -277,8 +277,10 @@ class FakeDrives:
     """The four simulated drives (parent-side handle; see the module doc).
 
     cfg: a :class:`~mmctl.config.Config` (or its ``base:`` section, then ``limits``
-    gives the acceleration; defaults otherwise).  Only the ``virtual`` interface is
-    allowed.  No I/O before :meth:`start`.
+    gives the acceleration; defaults otherwise).  The drives sit on python-can's
+    ``virtual`` bus, channel ``base.canopen.channel``, whatever the interface the master
+    uses to get there (``socketcand``: :mod:`mmctl.sim.socketcand` serves the channel).
+    No I/O before :meth:`start`.
     """
 
     def __init__(self, cfg: Config | BaseConfig, limits: LimitsConfig | None = None) -> None:
@@ -286,9 +288,6 @@ class FakeDrives:
             base, limits = cfg.base, cfg.limits
         else:
             base, limits = cfg, limits or LimitsConfig()
-        if base.canopen.interface != "virtual":
-            raise ValueError(f"FakeDrives runs on the 'virtual' interface only, "
-                             f"not {base.canopen.interface!r}")
         self.cfg = base
         self.node_ids: tuple[int, ...] = tuple(base.canopen.node_ids)
         self._counts_per_rad = base.canopen.counts_per_rev / (2.0 * math.pi)

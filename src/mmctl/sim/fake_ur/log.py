@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from enum import Enum
 from typing import NamedTuple
@@ -28,7 +29,8 @@ class FakeCommand(NamedTuple):
     :class:`CommandKind`; qd: (6,) joint speeds [rad/s] of a speedJ; acceleration
     [rad/s^2] and time [s] of a speedJ; deceleration [rad/s^2] of a speedStop; code:
     the ur_rtde command number (RTDE_COMMAND) or a size; text/reply: dashboard line and
-    answer, program name, etc.
+    answer, program name, etc.; received: CLOCK_MONOTONIC [s] when the fake took it
+    (``time.monotonic()``, comparable across the machine's processes: latency figures).
     """
 
     seq: int
@@ -41,6 +43,7 @@ class FakeCommand(NamedTuple):
     code: int | None = None
     text: str | None = None
     reply: str | None = None
+    received: float | None = None
 
 
 _OPTIONAL = ("qd", "acceleration", "time", "deceleration", "code", "text", "reply")
@@ -66,7 +69,7 @@ class CommandLog:
         if not _KNOWN.issuperset(fields):
             raise TypeError(f"unknown command log fields: {sorted(set(fields) - _KNOWN)}")
         self._ring.append((self._seq, controller_time, kind.value,
-                           *(fields.get(name) for name in _OPTIONAL)))
+                           *(fields.get(name) for name in _OPTIONAL), time.monotonic()))
         self._seq += 1
 
     def since(self, seq: int) -> list[FakeCommand]:

@@ -62,6 +62,7 @@ from mmctl.errors import ConfigError, FaultCause, MmctlError, SafetyFault, Trans
 from mmctl.transports.base import cia402 as ds
 from mmctl.transports.base.kinematics import OdometryIntegrator, WheelCommand, wrap_delta
 from mmctl.transports.base.protocol import WHEEL_NAMES, DriveStatus
+from mmctl.transports.canbus import bus_options, check_link, describe
 from mmctl.types import Odometry, Twist
 
 if TYPE_CHECKING:
@@ -194,12 +195,11 @@ class CanopenBase:
         co = self._co
         net = canopen.Network()
         net.NOTIFIER_CYCLE = _NOTIFIER_CYCLE
+        check_link(co, co.sdo_timeout * 4)
         try:
-            net.connect(interface=co.interface, channel=co.channel, bitrate=co.bitrate)
+            net.connect(**bus_options(co))
         except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise TransportError(
-                f"cannot open CAN interface {co.interface!r} channel {co.channel!r}: {exc}"
-            ) from exc
+            raise TransportError(f"cannot open CAN bus {describe(co)}: {exc}") from exc
         self._network = net
         self._reset_state()
         try:

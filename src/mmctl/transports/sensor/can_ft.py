@@ -80,6 +80,7 @@ import structlog
 
 from mmctl.config.sensor import SensorCanConfig
 from mmctl.errors import FaultCause, ProtocolError, SafetyFault, TransportError
+from mmctl.transports.canbus import bus_options, check_link, describe
 from mmctl.transports.sensor.protocol import SensorStats
 from mmctl.types import Vec, Wrench
 
@@ -235,7 +236,7 @@ class CanForceSensor:
     @property
     def link(self) -> str:
         """Where the sensor is expected, for messages: ``interface:channel@0xBASE``."""
-        return f"{self._cfg.interface}:{self._cfg.channel}@0x{self._cfg.base_id:02X}"
+        return f"{describe(self._cfg)}@0x{self._cfg.base_id:02X}"
 
     @property
     def calibration(self) -> Vec:
@@ -254,13 +255,14 @@ class CanForceSensor:
         if self._bus is not None:
             return
         cfg = self._cfg
+        check_link(cfg, cfg.connect_timeout)
         try:
             self._bus = can.Bus(
-                interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate,
+                **bus_options(cfg),
                 can_filters=[{"can_id": cfg.base_id << 4, "can_mask": _ID_MASK, "extended": False}],
             )
         except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise TransportError(f"cannot open CAN bus {cfg.interface}:{cfg.channel}: {exc}") from exc
+            raise TransportError(f"cannot open CAN bus {describe(cfg)}: {exc}") from exc
         try:
             decode_units(self._transact(OP_UNITS, b"", 1)[0])
             cpf, cpt = decode_counts(self._transact(OP_COUNTS, b"", 1)[0])

@@ -1,21 +1,26 @@
-"""The simulated robot `mmctl run` drives when no hardware is configured.
+"""The simulated robot: the fakes that speak the real wire protocols, and a person.
 
-:class:`SimWorld` starts the fakes that speak the real wire protocols — the fake UR
-controller (its own process, on ``arm.host``), the fake ATI sensor on the virtual CAN
-channel ``sensor.can.channel`` (or the RDT server), the four fake CiA 402 drives on
-``base.canopen.channel`` — and a thread playing a person at the handle.  The daemon
-then connects to them through its real transports, exactly as to the hardware.
+:class:`SimWorld` starts the fake UR controller (its own process, on ``arm.host``),
+the fake ATI sensor on the virtual CAN channel ``sensor.can.channel`` (or the RDT
+server), the four fake CiA 402 drives on ``base.canopen.channel``, and a thread playing
+a person at the handle.  When the configuration's CAN sections use ``socketcand``, a
+:class:`~mmctl.sim.socketcand.SocketcandServer` on ``sim.host:sim.can_port`` serves
+those virtual channels to other processes (the daemon).  `mmctl sim`
+(:mod:`mmctl.sim.service`) runs one in its own process; tests of the daemon's chain
+may also run one next to an in-process daemon on the ``virtual`` interface.
 
 The person (:class:`~mmctl.sim.human.SimulatedHuman`, a peg-in-hole task repeated
 forever) observes the handle's true pose: the fake UR's joints, the fake drives' base
 pose and the model's FK.  The hand force it applies is turned into what the sensor
 measures: rotated into the sensor frame, its torque about the sensor origin, plus the
 handle's weight (so gravity compensation has something to do) and a constant sensor
-bias (so the tare has something to do).  The human's switch requests press the
-simulated handle button.
+bias (so the tare has something to do).  The person's switch requests press the handle
+button: UR digital input ``daemon.switch_input`` of the fake controller (as wired on
+the robot), or :attr:`SimWorld.button` when no input is configured.  While the daemon
+tares, the person lets go (:meth:`SimWorld.hold`), as a real operator would.
 
-``command({"cmd": "sim", ...})`` (socket: ``mmctl`` tests, demos) can override the
-person with a constant push and inject faults into the fakes; see :data:`FAULTS`.
+:meth:`SimWorld.command` (the simulation's control socket, `mmctl sim ...`) overrides
+the person with a constant push and injects faults into the fakes; see :data:`FAULTS`.
 """
 
 from __future__ import annotations
@@ -31,8 +36,7 @@ import numpy as np
 import structlog
 
 from mmctl.config import Config
-from mmctl.errors import ConfigError, MmctlError
-from mmctl.runtime.devices import InjectedButton
+from mmctl.errors import MmctlError
 from mmctl.types import Vec
 
 log = structlog.get_logger("mmctl.sim")
@@ -53,7 +57,11 @@ FAULTS = {
     "arm_disconnected": "the UR controller process dies",
     "drive_fault": "drive 1 (FL) enters FAULT",
     "drive_silent": "drive 1 (FL) stops its heartbeat",
+    "drive_reboot": "drive 1 (FL) reboots (power glitch): default objects, boot-up message",
+    "sensor_garbage": "the CAN sensor answers with malformed (3-byte) frames",
 }
+#: Faults that are events, not states: "off" means nothing.
+_EVENTS = {"arm_not_playing", "drive_fault", "drive_reboot"}
 _HUMAN_PERIOD = 0.01  # [s] the person's update period (100 Hz: slow next to a hand)
 
 
@@ -72,16 +80,16 @@ class SimWorld:
     """
 
     def __init__(self, cfg: Config, log_dir: Path | None = None):
-        if cfg.sensor.transport == "can" and cfg.sensor.can.interface != "virtual":
-            raise ConfigError("sensor.can.interface", cfg.sensor.can.interface,
-                              "the simulated robot needs 'virtual' (sim.enabled is true)")
-        if cfg.base.transport != "canopen" or cfg.base.canopen.interface != "virtual":
-            raise ConfigError("base.canopen.interface", cfg.base.canopen.interface,
-                              "the simulated robot needs base.transport 'canopen' on the "
-                              "'virtual' interface (sim.enabled is true)")
+        if cfg.base.transport != "canopen":
+            raise MmctlError("the simulated robot's base is CANopen drives: base.transport "
+                             f"must be 'canopen', not {cfg.base.transport!r}")
         self.cfg = cfg
         self.log_dir = log_dir
-        self.button = InjectedButton()
+        #: the handle button when no UR digital input is configured (daemon.switch_input -1)
+        self.button = False
+        self._button_input = cfg.daemon.switch_input
+        self._button_sent = False
+        self.can_server: Any = None
         q0 = cfg.robot.q_init[:6] if cfg.robot.q_init is not None else cfg.robot.q_des
         self.q_init = np.asarray(q0, dtype=float)
         self.ur: Any = None
@@ -101,7 +109,15 @@ class SimWorld:
         self._human: Any = None
         self._request_was: str | None = None
         self._press_until = 0.0
+        self._hold_until = 0.0
+        self._update_lock = threading.Lock()
         self.updates = 0
+        #: push steps: each set_push/end of push is a new step number; the sensor's first
+        #: sample that carries it is stamped (CLOCK_MONOTONIC) in ``step_samples``
+        self._step = 0
+        self._wrench_step = 0
+        self._sampled_step = 0
+        self.step_samples: list[tuple[int, float]] = []
 
     # -- lifecycle ----------------------------------------------------------------------
     def start(self) -> None:
@@ -134,15 +150,41 @@ class SimWorld:
             self.sensor = FakeRdtServer(self, host=r.host, port=r.port,
                                         counts_per_force=r.counts_per_force,
                                         counts_per_torque=r.counts_per_torque).start()
+        served = self._served_channels()
+        if served:
+            from mmctl.sim.socketcand import SocketcandServer
+
+            self.can_server = SocketcandServer(cfg.sim.host, cfg.sim.can_port,
+                                               channels=served).start()
         self._thread = threading.Thread(target=self._run, name="mmctl-sim-human", daemon=True)
         self._thread.start()
         log.info("sim_started", arm_host=cfg.arm.host, sensor=cfg.sensor.transport,
-                 base_channel=cfg.base.canopen.channel, human=cfg.sim.human)
+                 base_channel=cfg.base.canopen.channel, human=cfg.sim.human,
+                 socketcand=None if not served else f"{cfg.sim.host}:{cfg.sim.can_port}",
+                 channels=served)
+
+    def _served_channels(self) -> list[str]:
+        """The virtual channels the daemon reaches through socketcand."""
+        cfg = self.cfg
+        out = []
+        if cfg.sensor.transport == "can" and cfg.sensor.can.interface == "socketcand":
+            out.append(cfg.sensor.can.channel)
+        if cfg.base.canopen.interface == "socketcand":
+            out.append(cfg.base.canopen.channel)
+        return out
 
     def start_human(self) -> None:
         """Let the simulated person start the task (if ``sim.human``)."""
         if self.cfg.sim.human:
             self.human_on = True
+
+    def hold(self, seconds: float) -> None:
+        """The person (or push) lets go of the handle for ``seconds`` (a tare)."""
+        if not (math.isfinite(seconds) and 0.0 <= seconds <= 60.0):
+            raise MmctlError(f"hold needs 0..60 s, got {seconds!r}")
+        with self._lock:
+            self._hold_until = time.monotonic() + seconds
+        self._update()  # the hand is off before the reply: the daemon tares next
 
     def close(self) -> None:
         """Stop the person and the fakes; write the command logs (idempotent)."""
@@ -152,7 +194,7 @@ class SimWorld:
             self._thread = None
         if self.log_dir is not None and self.ur is not None:
             self._write_logs(self.log_dir)
-        for name in ("sensor", "drives", "ur"):
+        for name in ("can_server", "sensor", "drives", "ur"):
             fake = getattr(self, name)
             if fake is None:
                 continue
@@ -165,8 +207,13 @@ class SimWorld:
     # -- what the fake sensor measures (WrenchSource) -------------------------------------
     def wrench(self, t: float) -> Vec:
         """The sensor-frame wrench (6,) [N, N m] right now (``t`` unused: the person's
-        thread keeps it current)."""
-        return self._wrench.copy()
+        thread keeps it current).  Stamps the first sample of each push step."""
+        wrench, step = self._wrench, self._wrench_step
+        if step != self._sampled_step:
+            self._sampled_step = step
+            self.step_samples.append((step, time.monotonic()))
+            del self.step_samples[:-1000]
+        return wrench.copy()
 
     # -- the person's thread ------------------------------------------------------------
     def _run(self) -> None:
@@ -223,13 +270,21 @@ class SimWorld:
         return SimulatedHuman(draw_user(self.cfg.sim.human_seed, 0), task, loop=True)
 
     def _update(self) -> None:
+        with self._update_lock:  # the person's thread, and set_push/hold at once
+            self._update_locked()
+
+    def _update_locked(self) -> None:
         t = time.monotonic()
         q, _qd, p, v, r_bs = self._observe()
         force = np.zeros(3)
         with self._lock:
             push = self.push if t < self._push_until else None
+            holding = t < self._hold_until
             faults = set(self._faults)
-        if push is not None:
+            step = self._step
+        if holding:
+            pass  # hands off the handle: the daemon tares
+        elif push is not None:
             force = push.copy()
         elif self.human_on:
             force = self._human_force(t, q, p, v)
@@ -238,11 +293,22 @@ class SimWorld:
             axis_b = r_bs[:, 2]
             force = 200.0 * np.array([c * axis_b[0] - s * axis_b[1],
                                       s * axis_b[0] + c * axis_b[1], axis_b[2]])
-        self.button.state = t < self._press_until
+        self._press(t < self._press_until)
         self._wrench = self._sensor_wrench(q, r_bs, force)
+        self._wrench_step = step
         self._last_force = force
         self._handle = p
         self.updates += 1
+
+    def _press(self, on: bool) -> None:
+        """The handle button: the fake UR's digital input (changes only), or ``button``."""
+        self.button = on
+        if self._button_input >= 0 and on != self._button_sent and self.ur is not None:
+            self._button_sent = on
+            try:
+                self.ur.set_digital_input(self._button_input, on)
+            except MmctlError as exc:  # the controller is down (a fault test): no button
+                log.warning("sim_button_failed", error=str(exc))
 
     def _sensor_wrench(self, q: Vec, r_bs: Vec, force_world: Vec) -> Vec:
         """World force at the handle -> what the sensor measures (sensor frame)."""
@@ -266,6 +332,8 @@ class SimWorld:
             self.set_push(req["push"], req.get("duration"))
         if "human" in req:
             self.human_on = bool(req["human"]) and self.cfg.sim.human
+        if "hold" in req:
+            self.hold(float(req["hold"]))
         if req.get("press"):
             self._press_until = time.monotonic() + 0.1
         if "fault" in req:
@@ -273,16 +341,27 @@ class SimWorld:
         return self.status()
 
     def set_push(self, force: Any, duration: float | None = None) -> None:
-        """A constant world-frame push [N] instead of the person (None ends it)."""
-        with self._lock:
-            if force is None:
-                self.push = None
-                return
-            f = np.asarray(force, dtype=float).reshape(-1)
+        """A constant world-frame push [N] instead of the person (None ends it); in the
+        sensor's next sample (a new step: :attr:`step_samples`)."""
+        if force is not None:
+            try:
+                f = np.asarray(force, dtype=float).reshape(-1)
+            except (TypeError, ValueError):
+                f = np.zeros(0)
             if f.shape != (3,) or not np.all(np.isfinite(f)):
                 raise MmctlError(f"push must be 3 finite numbers [N], got {force!r}")
-            self.push = f
-            self._push_until = math.inf if duration is None else time.monotonic() + float(duration)
+            if duration is not None and not (isinstance(duration, (int, float))
+                                             and math.isfinite(duration) and duration > 0):
+                raise MmctlError(f"push duration must be a number of seconds > 0, got {duration!r}")
+        with self._lock:
+            self._step += 1
+            if force is None:
+                self.push = None
+            else:
+                self.push = f
+                self._push_until = (math.inf if duration is None
+                                    else time.monotonic() + float(duration))
+        self._update()
 
     def inject(self, fault: str, on: bool = True) -> None:
         """Switch one of :data:`FAULTS` on or off in the fakes."""
@@ -319,8 +398,15 @@ class SimWorld:
                 self.drives.inject_silence(nid)
             else:
                 self.drives.resume(nid)
-        with self._lock:
+        elif fault == "drive_reboot":
             if on:
+                self.drives.reboot(nid)
+        elif fault == "sensor_garbage":
+            self.sensor.garbage = on
+        with self._lock:
+            if fault in _EVENTS:
+                pass  # an event: nothing stays on
+            elif on:
                 self._faults.add(fault)
             else:
                 self._faults.discard(fault)
@@ -334,11 +420,16 @@ class SimWorld:
             "faults": sorted(self._faults),
             "handle_world": [round(float(x), 5) for x in self._handle],
             "hand_force": [round(float(x), 3) for x in self._last_force],
-            "button": self.button.state,
+            "button": self.button,
+            "holding": time.monotonic() < self._hold_until,
+            "socketcand": None if self.can_server is None else {
+                "address": "{}:{}".format(*self.can_server.address),
+                "clients": self.can_server.clients()},
             "ur_pid": None if self.ur is None else self.ur.pid,
             # the fake controller's joints as its process publishes them right now
             # (shared memory: true also while the daemon's own threads were stopped)
             **self._arm_truth(),
+            **self._base_truth(),
             "updates": self.updates,
             "error": None if self.error is None else repr(self.error),
         }
@@ -350,6 +441,12 @@ class SimWorld:
         return {"arm_q": [round(float(x), 6) for x in arm.q],
                 "arm_qd": [round(float(x), 6) for x in arm.qd],
                 "arm_time": arm.controller_time}
+
+    def _base_truth(self) -> dict[str, Any]:
+        if self.drives is None:
+            return {}
+        return {"base_pose": [round(float(x), 6) for x in self.drives.pose()],
+                "wheel_velocities": [round(float(x), 4) for x in self.drives.wheel_velocities()]}
 
     def _write_logs(self, d: Path) -> None:
         d.mkdir(parents=True, exist_ok=True)

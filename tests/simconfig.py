@@ -1,0 +1,43 @@
+"""A configuration for a daemon on the simulated robot's own process, per test.
+
+Everything the simulated robot serves sits on the test's own loopback address (fake UR
+ports, socketcand), and its control socket in the test's directory, so tests running
+in parallel never meet.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _merge(into: dict[str, Any], extra: dict[str, Any]) -> None:
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(into.get(key), dict):
+            _merge(into[key], value)
+        else:
+            into[key] = value
+
+
+def sim_config(host: str, tmp: Path, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """config/sim.yaml moved to ``host``, the simulation's socket in ``tmp``, + ``extra``."""
+    cfg: dict[str, Any] = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
+    cfg["arm"]["host"] = host
+    cfg["sim"]["host"] = host
+    cfg["sim"]["socket_path"] = str(tmp / "sim.sock")
+    cfg["sensor"]["can"]["host"] = host
+    cfg["base"]["canopen"]["host"] = host
+    _merge(cfg, extra or {})
+    return cfg
+
+
+def write_sim_config(host: str, tmp: Path, extra: dict[str, Any] | None = None,
+                     name: str = "daemon.yaml") -> Path:
+    """:func:`sim_config` written to ``tmp / name``."""
+    path = tmp / name
+    path.write_text(yaml.safe_dump(sim_config(host, tmp, extra)))
+    return path

@@ -1,0 +1,204 @@
+"""`mmctl sim`: the simulated robot as a process of its own, and its CLI.
+
+One `mmctl sim` subprocess per module (its own loopback address and control socket);
+`mmctl run` attaches to it from another process and leaves it running; the CLI
+pushes, switches the person and injects faults over the simulation's socket; Ctrl-C
+ends it cleanly.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from mmctl.cli import main
+from mmctl.errors import IpcError
+from mmctl.runtime.ipc import ControlClient, request
+from simconfig import write_sim_config
+
+pytestmark = pytest.mark.timeout(600)
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _host(n: int) -> str:
+    digits = "".join(c for c in os.environ.get("PYTEST_XDIST_WORKER", "gw0") if c.isdigit())
+    return f"127.{10 + int(digits or 0)}.{204 + os.getpid() % 40}.{n}"
+
+
+class Sim:
+    def __init__(self, tmp: Path, host: str, extra: dict[str, Any] | None = None) -> None:
+        self.tmp = tmp
+        self.config = write_sim_config(host, tmp, {
+            "name": "sim-test", "sim": {"human": False, "auto_enable": True},
+            "daemon": {"socket_path": str(tmp / "mmctl.sock")}, **(extra or {})})
+        self.socket = tmp / "sim.sock"
+        self.out = tmp / "sim.log"
+        with self.out.open("ab") as f:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "mmctl.cli", "sim", "--config", str(self.config),
+                 "--log-json"], stdout=f, stderr=subprocess.STDOUT, cwd=str(ROOT),
+                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        self.wait_for(lambda: self.call("status"), "the simulation's socket")
+
+    def call(self, cmd: str, **args: Any) -> Any:
+        return request(self.socket, cmd, timeout=60.0, **args)
+
+    def log_text(self) -> str:
+        return self.out.read_text(errors="replace")
+
+    def wait_for(self, pred: Any, what: str, timeout: float = 180.0) -> Any:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                value = pred()
+            except (IpcError, OSError):
+                value = None
+            if value:
+                return value
+            if self.proc.poll() is not None:
+                raise AssertionError(f"mmctl sim exited ({self.proc.returncode}) while waiting "
+                                     f"for {what}:\n{self.log_text()[-4000:]}")
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}\n{self.log_text()[-4000:]}")
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(30)
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Sim]:
+    s = Sim(tmp_path_factory.mktemp("sim"), _host(2))
+    try:
+        yield s
+    finally:
+        s.kill()
+
+
+def _cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    rc = main(list(argv))
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+def test_status_and_push_from_the_cli(sim: Sim, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = ["--config", str(sim.config)]
+    rc, out, _ = _cli(capsys, "sim", "status", *cfg)
+    assert rc == 0 and out.startswith("person: off"), out
+    assert "socketcand: " in out and "(0 client(s))" in out
+    rc, out, _ = _cli(capsys, "sim", "push", "0", "30", "0", "--seconds", "5", *cfg)
+    assert rc == 0 and "person: push (push [0.0, 30.0, 0.0] N)" in out, out
+    rc, out, _ = _cli(capsys, "sim", "status", "--json", *cfg)
+    st = json.loads(out)
+    assert st["push"] == [0.0, 30.0, 0.0] and st["person"] == "push"
+    rc, out, _ = _cli(capsys, "sim", "person", "off", *cfg)
+    assert rc == 0 and out.startswith("person: off"), out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["push", "1", "2"], "push needs three numbers FX FY FZ"),
+    (["push", "1", "x", "2"], "push needs three numbers FX FY FZ"),
+    (["person", "maybe"], "person needs on or off"),
+    (["fault"], "fault needs one NAME"),
+    (["fault", "gremlins"], "unknown sim fault 'gremlins'; known: sensor_silent"),
+    (["status", "extra"], "status takes no arguments"),
+])
+def test_cli_errors_are_one_line(sim: Sim, capsys: pytest.CaptureFixture[str],
+                                 argv: list[str], message: str) -> None:
+    rc, _, err = _cli(capsys, "sim", *argv, "--config", str(sim.config))
+    assert rc == 2 and err.count("\n") == 1 and message in err, err
+    assert sim.call("status")["pid"] == sim.proc.pid  # carries on
+
+
+def test_fault_list_and_injection(sim: Sim, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = ["--config", str(sim.config)]
+    rc, out, _ = _cli(capsys, "sim", "fault", "--list")
+    assert rc == 0 and "drive_reboot" in out and "sensor_garbage" in out
+    assert _cli(capsys, "sim", "fault", "sensor_garbage", *cfg)[0] == 0
+    assert sim.call("status")["faults"] == ["sensor_garbage"]
+    assert _cli(capsys, "sim", "fault", "sensor_garbage", "--off", *cfg)[0] == 0
+    assert sim.call("status")["faults"] == []
+
+
+def test_malformed_requests_get_errors_and_the_sim_carries_on(sim: Sim) -> None:
+    with ControlClient(sim.socket, timeout=60.0) as c:
+        assert c.raw(b"{oops")["error"].startswith("malformed request")
+        assert "unknown command 'explode'" in c.raw(b'{"cmd": "explode"}')["error"]
+        assert "push must be 3 finite numbers" in c.raw(
+            b'{"cmd": "push", "force": [1, "NaN", 2]}')["error"]
+        assert "push duration must be" in c.raw(
+            b'{"cmd": "push", "force": [1, 2, 3], "seconds": -1}')["error"]
+        assert "hold needs" in c.raw(b'{"cmd": "person", "hold": "long"}')["error"]
+        assert c.call("status")["person"] == "off"
+
+
+def test_a_second_sim_on_the_same_socket_refuses(sim: Sim) -> None:
+    out = sim.tmp / "second.log"
+    with out.open("wb") as f:
+        rc = subprocess.run([sys.executable, "-m", "mmctl.cli", "sim", "--config",
+                             str(sim.config)], check=False, stdout=f, stderr=subprocess.STDOUT,
+                            cwd=str(ROOT), timeout=120).returncode
+    assert rc == 2, out.read_text()
+    assert "already running on" in out.read_text()
+    assert sim.call("status")["pid"] == sim.proc.pid
+
+
+def test_run_attaches_to_a_running_sim_and_leaves_it_running(sim: Sim) -> None:
+    """`mmctl run` finds the simulation on its socket: it starts none of its own, arms
+    (sim.auto_enable), a push from the simulation's CLI moves the handle, and the
+    simulation outlives the daemon."""
+    out = sim.tmp / "daemon.log"
+    sock = sim.tmp / "mmctl.sock"
+    with out.open("ab") as f:
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "mmctl.cli", "run", "--config", str(sim.config),
+             "--log-json"], stdout=f, stderr=subprocess.STDOUT, cwd=str(ROOT),
+            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        sim.wait_for(lambda: request(sock, "status", timeout=30.0)["state"] == "armed",
+                     "the daemon to arm")
+        st = request(sock, "status", timeout=30.0)
+        assert st["sim"] == {"socket": str(sim.socket), "pid": sim.proc.pid, "owned": False}
+        p0 = np.array(sim.call("status")["handle_world"])
+        sim.call("push", force=[0.0, 30.0, 0.0])
+        sim.wait_for(lambda: np.array(sim.call("status")["handle_world"])[1] - p0[1] > 0.03,
+                     "the handle to move 3 cm along +y")
+        sim.call("push", force=None)
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(120) == 0, out.read_text()[-3000:]
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait(30)
+    events = [json.loads(line)["event"] for line in out.read_text().splitlines()
+              if line.startswith("{")]
+    assert "sim_attached" in events and "sim_spawned" not in events, events
+    assert sim.call("status")["pid"] == sim.proc.pid  # still running
+
+
+def test_ctrl_c_ends_the_sim_cleanly(tmp_path: Path) -> None:
+    s = Sim(tmp_path, _host(3))
+    try:
+        ur_pid = s.call("status")["ur_pid"]
+        s.proc.send_signal(signal.SIGINT)
+        assert s.proc.wait(120) == 0, s.log_text()[-3000:]
+    finally:
+        s.kill()
+    text = s.log_text()
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-3000:]
+    assert not s.socket.exists()
+    with pytest.raises(ProcessLookupError):
+        os.kill(ur_pid, 0)
+    stopping = [json.loads(line) for line in text.splitlines() if '"sim_stopping"' in line]
+    assert stopping and stopping[0]["reason"] == "SIGINT"
