@@ -155,11 +155,14 @@ def test_a_second_sim_on_the_same_socket_refuses(sim: Sim) -> None:
 
 
 def test_run_attaches_to_a_running_sim_and_leaves_it_running(sim: Sim) -> None:
-    """`mmctl run` finds the simulation on its socket: it starts none of its own, arms
-    (sim.auto_enable), a push from the simulation's CLI moves the handle, and the
-    simulation outlives the daemon."""
+    """`mmctl run` finds the simulation on its socket: it starts none of its own, tares
+    and arms (sim.auto_enable), the push that was on all along moves the handle (the
+    person let go of the handle while the daemon tared: the tare did not absorb it), and
+    the simulation outlives the daemon."""
     out = sim.tmp / "daemon.log"
     sock = sim.tmp / "mmctl.sock"
+    sim.call("push", force=[0.0, 30.0, 0.0])  # before the daemon starts, through its tare
+    p0 = np.array(sim.call("status")["handle_world"])
     with out.open("ab") as f:
         daemon = subprocess.Popen(
             [sys.executable, "-m", "mmctl.cli", "run", "--config", str(sim.config),
@@ -170,8 +173,6 @@ def test_run_attaches_to_a_running_sim_and_leaves_it_running(sim: Sim) -> None:
                      "the daemon to arm")
         st = request(sock, "status", timeout=30.0)
         assert st["sim"] == {"socket": str(sim.socket), "pid": sim.proc.pid, "owned": False}
-        p0 = np.array(sim.call("status")["handle_world"])
-        sim.call("push", force=[0.0, 30.0, 0.0])
         sim.wait_for(lambda: np.array(sim.call("status")["handle_world"])[1] - p0[1] > 0.03,
                      "the handle to move 3 cm along +y")
         sim.call("push", force=None)
@@ -184,6 +185,7 @@ def test_run_attaches_to_a_running_sim_and_leaves_it_running(sim: Sim) -> None:
     events = [json.loads(line)["event"] for line in out.read_text().splitlines()
               if line.startswith("{")]
     assert "sim_attached" in events and "sim_spawned" not in events, events
+    assert events.index("auto_enabled") > 0
     assert sim.call("status")["pid"] == sim.proc.pid  # still running
 
 

@@ -335,10 +335,19 @@ def _interleaved(daemon: Any, seconds: float, windows: int
             snaps[plain].append(ring.snapshot(ring.count - c0))
     finally:
         loop.plain_sleep = False
+    from mmctl.runtime.daemon import PHASES
+
     out = []
     for plain in (False, True):
         steps = np.concatenate([cycle_rows(daemon.step_ns, s) for s in snaps[plain]]) / 1e3
-        out.append(_figures(concat(snaps[plain]), steps[steps > 0]))
+        fig = _figures(concat(snaps[plain]), steps[steps > 0])
+        for k, name in enumerate(PHASES):  # the per-device breakdown of the compute time
+            us = np.concatenate([cycle_rows(daemon.phase_ns[k], s) for s in snaps[plain]]) / 1e3
+            us = us[us > 0]
+            if len(us):
+                fig[f"{name}_p50_us"] = round(float(np.percentile(us, 50)), 2)
+                fig[f"{name}_p99_us"] = round(float(np.percentile(us, 99)), 2)
+        out.append(fig)
     return out[0], out[1]
 
 
@@ -370,6 +379,20 @@ def _print_table(r: dict[str, Any]) -> None:
               f"{r['telemetry_seconds'] / t['phases']:g} s windows):")
         print(format_report(r["telemetry"]))
         print(telemetry_verdict(r["telemetry"]))
+    from mmctl.runtime.daemon import PHASES
+
+    parts = [f"{name} {r['loop'].get(name + '_p50_us', 0):.0f}/"
+             f"{r['loop'].get(name + '_p99_us', 0):.0f}" for name in ("step", *PHASES)]
+    print("where the loop's compute goes, p50/p99 [us]: " + ", ".join(parts))
+    f2c = r.get("force_to_command")
+    if f2c:
+        print(f"force to command ({f2c['steps']} push steps of {f2c['force_N']:g} N, from the "
+              f"sensor fake's sample to the fakes' receipt) p50/p99 [us]: speedJ "
+              f"{f2c.get('force_to_speedj_p50_us', 0):.0f}/{f2c.get('force_to_speedj_p99_us', 0):.0f}"
+              f", wheels {f2c.get('force_to_wheels_p50_us', 0):.0f}/"
+              f"{f2c.get('force_to_wheels_p99_us', 0):.0f}, both "
+              f"{f2c.get('force_to_command_p50_us', 0):.0f}/"
+              f"{f2c.get('force_to_command_p99_us', 0):.0f}")
     warning = fault_warning(r)
     if warning:
         print(warning)

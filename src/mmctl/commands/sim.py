@@ -41,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--log-level", choices=("debug", "info", "warning", "error"),
                    help="override daemon.log_level")
     g.add_argument("--log-json", action="store_true", help="JSON log lines even on a TTY")
+    g.add_argument("--cpus", metavar="LIST",
+                   help="run the simulation (and the fake UR's process) on these CPUs only, "
+                   "e.g. 0 or 0,2: keep it off the control loop's CPUs, as hardware would be")
     g.add_argument("--log-console", action="store_true", help=argparse.SUPPRESS)
     g.add_argument("--exit-with-parent", action="store_true", help=argparse.SUPPRESS)
     g.add_argument("--delete-config", action="store_true", help=argparse.SUPPRESS)
@@ -67,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _serve(args: argparse.Namespace) -> int:
     import faulthandler
+    import os
     from pathlib import Path
 
     from mmctl.runtime.client import load
@@ -74,6 +78,13 @@ def _serve(args: argparse.Namespace) -> int:
     from mmctl.sim.service import SimService
 
     faulthandler.enable()
+    if args.cpus:
+        try:
+            os.sched_setaffinity(0, {int(c) for c in args.cpus.split(",") if c.strip()})
+        except (ValueError, OSError) as exc:
+            from mmctl.errors import MmctlError
+
+            raise MmctlError(f"--cpus {args.cpus!r}: {exc}") from None
     cfg = load(args.config)
     if args.delete_config and args.config:  # a temporary file written by `mmctl run`
         Path(args.config).unlink(missing_ok=True)

@@ -34,11 +34,22 @@ class LoopConfig:
         "the loop thread waiting for the interpreter",
     )
     timing_samples: int = param(8192, gt=1, doc="cycles kept in the timing ring")
+    sensor_request: Literal["start", "end"] = param(
+        "start",
+        doc="when a request/reply sensor (CAN) is asked for its next sample: at the end of "
+        "the cycle (the answer arrives in the idle time; the sample is a period old when "
+        "used) or at its start (the arm and the base are read while it answers: a fresher "
+        "sample, and the reply's wait inside the cycle); `mmctl bench loop` measures both")
     base_divider: int = param(
         2, ge=1, le=50,
         doc="send the base twist every n-th cycle (each command is 4 RPDOs + SYNC + 4 "
         "TPDOs: ~50 % of a 1 Mbit/s CAN bus at 500 Hz); stop commands go out at once",
     )
+    base_jump: float = param(
+        0.001, unit="m/s | rad/s", gt=0.0,
+        doc="a base twist differing from the last one sent by more than this goes out in "
+        "its own cycle, whatever base_divider says (a new push reaches the wheels one "
+        "period sooner; steady motion keeps the divided rate)")
 
 
 @section

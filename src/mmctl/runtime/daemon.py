@@ -73,6 +73,10 @@ _LINK_CAUSE = {"arm": FaultCause.ARM_DISCONNECTED, "sensor": FaultCause.SENSOR_L
                "base": FaultCause.BASE_LINK}
 
 
+#: The device phases of a cycle timed in :attr:`Daemon.phase_ns` (rows, in this order).
+PHASES = ("arm_read", "sensor_read", "base_read", "arm_send", "base_send", "sensor_request")
+
+
 class StartAborted(Exception):
     """A stop request arrived while :meth:`Daemon.open` was still starting."""
 
@@ -107,6 +111,9 @@ class Daemon:
         #: time spent in the telemetry sample hook (write the cycle's row) per cycle,
         #: indexed like ``step_ns`` [ns]; 0 when no hook ran: telemetry's own loop cost
         self.hook_ns = np.zeros(cfg.loop.timing_samples, np.int64)
+        #: per device phase (:data:`PHASES`) and cycle, indexed like ``step_ns`` [ns]; 0
+        #: when the phase did not run: where the compute time goes (`mmctl bench loop`)
+        self.phase_ns = np.zeros((len(PHASES), cfg.loop.timing_samples), np.int64)
         self.loop = CycleLoop(
             self.cycle, rate_hz=cfg.loop.rate_hz, spin_margin=cfg.loop.spin_margin,
             max_consecutive_misses=cfg.loop.max_consecutive_misses,
@@ -142,6 +149,9 @@ class Daemon:
         #: each cycle so the answer comes in the loop's idle time; None: it streams
         self._sensor_request: Callable[[], None] | None = getattr(
             devices.sensor, "request_next", None)
+        self._request_at_start = cfg.loop.sensor_request == "start"
+        #: the newest base twist sent (None: none since the last stop)
+        self._twist_sent: tuple[float, float, float] | None = None
 
     # ------------------------------------------------------------------ lifecycle --
     def open(self) -> None:
@@ -299,7 +309,8 @@ class Daemon:
             log.warning("auto_enable_failed", error=str(exc))
             return
         log.info("auto_enabled", mode=self.core.mode)
-        self.sim.start_human()
+        if self.cfg.sim.human:  # (a push set meanwhile stays on otherwise)
+            self.sim.start_human()
 
     # ---------------------------------------------------------- operator commands --
     def submit(self, fn: Callable[[], Any]) -> Future[Any]:
@@ -544,13 +555,25 @@ class Daemon:
     def _cycle(self, tick: Tick) -> None:
         conditions: dict[FaultCause, dict[str, Any]] = {}
         dev = self.devices
+        clock = time.perf_counter_ns
+        row = self.cycles % self.phase_ns.shape[1]
+        phase = self.phase_ns
+        phase[3, row] = phase[4, row] = phase[5, row] = 0
+        request_first = self._request_at_start
+        if request_first:  # the sensor answers while the arm and the base are read
+            self._request_sensor(row)
+        t0 = clock()
         if self._arm_busy:
             conditions[FaultCause.ARM_DISCONNECTED] = {"device": "arm", "why": "reconnecting"}
             arm = None
         else:
             arm = self._read("arm", dev.arm.read_state, conditions)
-        wrench = self._read("sensor", dev.sensor.read, conditions)
+        t1 = clock()
         odom = self._read("base", dev.base.read_odometry, conditions)
+        t2 = clock()
+        wrench = self._read("sensor", dev.sensor.read, conditions)
+        t3 = clock()
+        phase[0, row], phase[2, row], phase[1, row] = t1 - t0, t2 - t1, t3 - t2
         if tick.overrun:
             conditions[FaultCause.LOOP_OVERRUN] = {
                 "consecutive": tick.consecutive_misses, "total": tick.total_misses}
@@ -577,20 +600,30 @@ class Daemon:
             self.hook_ns[self.cycles % self.hook_ns.shape[0]] = time.perf_counter_ns() - t0
         moved = False
         if not stop_now and self.safety.armed and result is not None:
-            moved = self._send_motion(result, tick.index % self.cfg.loop.base_divider == 0)
+            moved = self._send_motion(result, self._base_due(tick.index, result.twist))
         if not moved and not self._arm_busy:
+            t0 = clock()
             self._kick_arm_watchdog()
+            phase[3, row] = clock() - t0
         if not conditions and dev.connected and not self._healthy_cycle.is_set():
             self._healthy_cycle.set()  # once: Event.set takes a lock and notifies
         if stop_now:
             self._update_status()
-        if self._sensor_request is not None:
-            try:
-                self._sensor_request()
-            except TransportError as exc:  # the next read finds no reply: stale, a fault
-                suppressed = self._limiter.allow("sensor_request_failed")
-                if suppressed is not None:
-                    log.warning("sensor_request_failed", error=str(exc), suppressed=suppressed)
+        if not request_first:
+            self._request_sensor(row)
+
+    def _request_sensor(self, row: int) -> None:
+        """Ask a request/reply sensor for its next sample (``loop.sensor_request``)."""
+        if self._sensor_request is None:
+            return
+        t0 = time.perf_counter_ns()
+        try:
+            self._sensor_request()
+        except TransportError as exc:  # the next read finds no reply: stale, a fault
+            suppressed = self._limiter.allow("sensor_request_failed")
+            if suppressed is not None:
+                log.warning("sensor_request_failed", error=str(exc), suppressed=suppressed)
+        self.phase_ns[5, row] = time.perf_counter_ns() - t0
 
     def _send_motion(self, r: CycleResult, base: bool = True) -> bool:
         """speedJ, then (every ``loop.base_divider``-th cycle: ``base``) the base twist
@@ -601,9 +634,13 @@ class Daemon:
         speedJ goes first: the base's RPDOs + SYNC wake the CANopen threads, and a
         ur_rtde call made while they run waits for the GIL."""
         dev = self.devices
+        row = self.cycles % self.phase_ns.shape[1]
+        t0 = time.perf_counter_ns()
         try:
             dev.arm.speed_j(r.qd_arm, self.cfg.arm.speedj_acceleration, self.period)
             self.commands_sent["speed_j"] += 1
+            t1 = time.perf_counter_ns()
+            self.phase_ns[3, row] = t1 - t0
         except (SafetyFault, TransportError) as exc:
             cause = getattr(exc, "cause", FaultCause.ARM_DISCONNECTED)
             if self.safety.trip(cause, device="arm", **getattr(exc, "details", {})):
@@ -612,13 +649,26 @@ class Daemon:
         if not base:
             return True
         try:
-            dev.base.send_twist(float(r.twist[0]), float(r.twist[1]), float(r.twist[2]))
+            vx, vy, wz = float(r.twist[0]), float(r.twist[1]), float(r.twist[2])
+            dev.base.send_twist(vx, vy, wz)
+            self._twist_sent = (vx, vy, wz)
             self.commands_sent["twist"] += 1
+            self.phase_ns[4, row] = time.perf_counter_ns() - t1
         except (SafetyFault, TransportError) as exc:
             cause = getattr(exc, "cause", FaultCause.BASE_LINK)
             if self.safety.trip(cause, device="base", **getattr(exc, "details", {})):
                 self._send_stop()
         return True
+
+    def _base_due(self, index: int, twist: Any) -> bool:
+        """Every ``loop.base_divider``-th cycle, or at once when the twist jumped by more
+        than ``loop.base_jump`` since the last one sent (a new push)."""
+        last = self._twist_sent
+        if index % self.cfg.loop.base_divider == 0 or last is None:
+            return True
+        jump = self.cfg.loop.base_jump
+        return (abs(twist[0] - last[0]) > jump or abs(twist[1] - last[1]) > jump
+                or abs(twist[2] - last[2]) > jump)
 
     def _kick_arm_watchdog(self) -> None:
         """A cycle without speedJ still feeds the controller's RTDE watchdog: only a
@@ -636,6 +686,7 @@ class Daemon:
         self.devices.stop(self.cfg.arm.stop_deceleration, disable_base=True,
                           arm=not self._arm_busy, wait=False)
         self._base_enabled = False
+        self._twist_sent = None
         self.commands_sent["stop"] += 1
 
     def _poll_button(self) -> None:

@@ -122,6 +122,11 @@ class SimLink:
         cmd.append("--log-json" if json_logs else "--log-console")
         if self.log_dir is not None:
             cmd += ["--log", str(self.log_dir)]
+        loop_cpus = set(self.cfg.loop.cpu_affinity)
+        if loop_cpus and hasattr(os, "sched_getaffinity"):
+            others = os.sched_getaffinity(0) - loop_cpus
+            if others:  # the simulated devices stand in for hardware: off the loop's CPUs
+                cmd += ["--cpus", ",".join(map(str, sorted(others)))]
         sys.stdout.flush()
         # its own session: a terminal's Ctrl-C (SIGINT to the foreground process group)
         # reaches only the daemon, which stops the robot before it stops the simulation
