@@ -158,6 +158,13 @@ def test_a_frozen_daemon_leaves_the_arm_at_rest(daemon: Daemon) -> None:
     frozen = 3.0
     time.sleep(frozen)
     st = daemon.sim("status")  # the daemon is still stopped
+    # the drives' own watchdog (0.5 s) and their quick-stop ramp end the wheels' motion
+    # with nobody commanding them; a starved simulation may take longer: wait for it
+    deadline = time.monotonic() + 30.0
+    while any(st["wheel_velocities"]) and time.monotonic() < deadline:
+        time.sleep(0.2)
+        wheels_st = daemon.sim("status")
+        st = {**st, "wheel_velocities": wheels_st["wheel_velocities"]}
     os.kill(daemon.proc.pid, signal.SIGCONT)
     travel = float(np.abs(np.array(st["arm_q"]) - q0).max())
     print(f"fastest joint {speed:.3f} rad/s, fastest wheel {wheels:.2f} rad/s before the "
