@@ -244,6 +244,7 @@ SENSOR_CASES = [
     ("arm_protective_stop", FaultCause.ARM_PROTECTIVE_STOP),
     ("arm_emergency_stop", FaultCause.ARM_EMERGENCY_STOP),
     ("drive_silent", FaultCause.DRIVE_HEARTBEAT),
+    ("sensor_garbage", FaultCause.SENSOR_LINK),
 ]
 
 
@@ -260,9 +261,14 @@ def test_fault_stops_within_the_cycle_and_latches(world: World, fault: str,
     world.daemon.call("disable")
 
 
-def test_drive_fault_is_reset_by_the_operators_enable(world: World) -> None:
-    inject_and_detect(world, lambda: world.sim.inject("drive_fault"), FaultCause.DRIVE_FAULT,
-                      clear=lambda: None)
+@pytest.mark.parametrize("fault", ["drive_fault", "drive_reboot"])
+def test_drive_fault_is_reset_by_the_operators_enable(world: World, fault: str) -> None:
+    """A drive in FAULT, or one that rebooted (a power glitch: its objects back at their
+    defaults): a drive fault, latched; the operator's enable resets or reconfigures it."""
+    # a rebooted drive waits in PRE-OPERATIONAL: it takes no RPDO until reconfigured
+    deaf = world.cfg.base.canopen.node_ids[0] if fault == "drive_reboot" else None
+    inject_and_detect(world, lambda: world.sim.inject(fault), FaultCause.DRIVE_FAULT,
+                      clear=lambda: None, deaf_drive=deaf)
     step(world, 2)
     assert world.daemon.safety.state is SafetyState.FAULT  # latched until the operator acts
     arm_until_ok(world)  # enable = CiA 402 fault reset; the fake drive recovers
