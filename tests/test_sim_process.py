@@ -134,7 +134,8 @@ def test_fault_list_and_injection(sim: Sim, capsys: pytest.CaptureFixture[str]) 
 def test_malformed_requests_get_errors_and_the_sim_carries_on(sim: Sim) -> None:
     with ControlClient(sim.socket, timeout=60.0) as c:
         assert c.raw(b"{oops")["error"].startswith("malformed request")
-        assert "unknown command 'explode'" in c.raw(b'{"cmd": "explode"}')["error"]
+        assert c.raw(b'{"cmd": "explode"}')["error"] == (
+            "unknown command 'explode'; known: status, push, person, press, fault, log, stop")
         assert "push must be 3 finite numbers" in c.raw(
             b'{"cmd": "push", "force": [1, "NaN", 2]}')["error"]
         assert "push duration must be" in c.raw(

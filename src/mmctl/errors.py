@@ -28,10 +28,6 @@ class ModelError(MmctlError):
     """The robot model could not be built or evaluated (unknown frame, bad parameters)."""
 
 
-class SingularityError(MmctlError):
-    """The task Jacobian is too close to singular for the requested motion."""
-
-
 class TransportError(MmctlError):
     """A device link failed: nothing answers, a frame is malformed, a peer disconnected."""
 

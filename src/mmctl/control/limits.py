@@ -74,13 +74,6 @@ class Limits:
         self._qmax = self.q_max.tolist()
 
     # --- joint boxes -----------------------------------------------------------
-    def joint_speed_caps(self, q_a: Vec) -> tuple[Vec, Vec]:
-        """Allowed arm joint velocity range (lo <= 0 <= hi), (6,) each [rad/s], from the
-        speed limits and the position braking zones at ``q_a`` (6,) [rad]."""
-        up = np.clip((self.q_max - q_a) / self.margin, 0.0, 1.0)
-        down = np.clip((q_a - self.q_min) / self.margin, 0.0, 1.0)
-        return -self.v_joint * down, self.v_joint * up
-
     def box_bounds(self, q: Vec, qdot_prev: Vec, dt: float) -> tuple[Vec, Vec]:
         """Per-coordinate bounds (9,), (9,) on qdot for one period ``dt`` [s]: speed,
         position braking and acceleration (box: |vx|, |vy| <= v_lin separately).

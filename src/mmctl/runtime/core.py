@@ -23,7 +23,7 @@ from mmctl.config import Config
 from mmctl.control.energy import Energy
 from mmctl.control.step import Controller, ControllerState, StepInputs, StepOutputs
 from mmctl.control.wrench import WrenchProcessor
-from mmctl.errors import FaultCause, MmctlError
+from mmctl.errors import FaultCause
 from mmctl.model.robot import RobotModel
 from mmctl.telemetry import ring as tr
 from mmctl.types import ArmState, Odometry, Vec, Wrench
@@ -75,7 +75,6 @@ class ControlCore:
         self.wrench = WrenchProcessor(cfg.sensor.wrench, self.dt, control_point)
         self.state: ControllerState = self.controller.initial_state()
         self.wstate = self.wrench.initial_state()
-        self._sensor_frame = self.model.frame_id("sensor")
 
     # -- operator commands (loop thread) ------------------------------------------------
     @property
@@ -183,10 +182,3 @@ class ControlCore:
                         r.f_h, r.v_d, v, r.qd_cmd, (e.total, e.arm, e.base), r.p, r.p_des),
                        out=row)
 
-
-def check_mode(name: str) -> None:
-    """Raise a one-line error listing the valid modes when ``name`` is not one."""
-    from mmctl.config.control import STRATEGIES
-
-    if name not in STRATEGIES:
-        raise MmctlError(f"unknown mode {name!r}; valid: {', '.join(STRATEGIES)}")

@@ -133,7 +133,6 @@ class Daemon:
         self.last: CycleResult | None = None
         self.last_conditions: dict[FaultCause, dict[str, Any]] = {}
         self._button_was = False
-        self._base_enabled = False
         self._arm_busy = False
         """An arm reconnect runs off the loop thread (set and cleared around it): the
         loop then leaves the arm alone and counts it as disconnected."""
@@ -152,6 +151,7 @@ class Daemon:
         self._request_at_start = cfg.loop.sensor_request == "start"
         #: the newest base twist sent (None: none since the last stop)
         self._twist_sent: tuple[float, float, float] | None = None
+        self._handlers = self._command_table()
 
     # ------------------------------------------------------------------ lifecycle --
     def open(self) -> None:
@@ -349,30 +349,45 @@ class Daemon:
     def handle(self, req: Mapping[str, Any], peer: Peer | None) -> Any:
         """Dispatch one control-socket request (see :mod:`mmctl.runtime.ipc`)."""
         cmd = req["cmd"]
-        if cmd == "status":
-            return self.status()
-        if cmd == "enable":
-            return self._enable_request(_budget(req, self.cfg.daemon.command_timeout))
-        if cmd == "disable":
-            return self._on_loop(self._disable)
-        if cmd == "mode":
-            mode = _arg(req, "mode", str)
-            return self._on_loop(lambda: self._set_mode(mode))
-        if cmd == "switch":
-            which = _arg(req, "to", str)
-            return self._on_loop(lambda: self._set_switch(which))
-        if cmd == "tare":
-            self._hands_off_for_tare()
-            return self._on_loop(self._tare)
-        if cmd == "stop":
-            self.request_stop("mmctl stop")
-            return {"stopping": True}
-        if cmd == "trial":
-            if self.telemetry is None:
-                raise MmctlError("'trial' needs the telemetry service")
-            return self.telemetry.command(req, self._on_loop, self)
-        raise MmctlError(f"unknown command {cmd!r}; known: status, enable, disable, mode, "
-                         "switch, tare, stop, trial")
+        handler = self._handlers.get(cmd)
+        if handler is None:
+            raise MmctlError(f"unknown command {cmd!r}; known: {', '.join(self._handlers)}")
+        return handler(req)
+
+    def _command_table(self) -> dict[str, Callable[[Mapping[str, Any]], Any]]:
+        """The control socket's commands: name -> handler of the request."""
+        return {
+            "status": lambda req: self.status(),
+            "enable": lambda req: self._enable_request(
+                _budget(req, self.cfg.daemon.command_timeout)),
+            "disable": lambda req: self._on_loop(self._disable),
+            "mode": self._cmd_mode,
+            "switch": self._cmd_switch,
+            "tare": self._cmd_tare,
+            "stop": self._cmd_stop,
+            "trial": self._cmd_trial,
+        }
+
+    def _cmd_mode(self, req: Mapping[str, Any]) -> Any:
+        mode = _arg(req, "mode", str)
+        return self._on_loop(lambda: self._set_mode(mode))
+
+    def _cmd_switch(self, req: Mapping[str, Any]) -> Any:
+        which = _arg(req, "to", str)
+        return self._on_loop(lambda: self._set_switch(which))
+
+    def _cmd_tare(self, req: Mapping[str, Any]) -> Any:
+        self._hands_off_for_tare()
+        return self._on_loop(self._tare)
+
+    def _cmd_stop(self, req: Mapping[str, Any]) -> Any:
+        self.request_stop("mmctl stop")
+        return {"stopping": True}
+
+    def _cmd_trial(self, req: Mapping[str, Any]) -> Any:
+        if self.telemetry is None:
+            raise MmctlError("'trial' needs the telemetry service")
+        return self.telemetry.command(req, self._on_loop, self)
 
     def _hands_off_for_tare(self) -> None:
         """Simulated robot: the person lets go of the handle while the sensor is tared
@@ -457,7 +472,6 @@ class Daemon:
                 pass
             raise MmctlError(f"refused to enable: the base did not enable ({exc})") from None
         self.safety.enable({})
-        self._base_enabled = True
         self.core.reset()
         self.loop.reset_misses()
         self._update_status()
@@ -685,7 +699,6 @@ class Daemon:
         (each drive ramps down before its power stage goes off, 0x605B)."""
         self.devices.stop(self.cfg.arm.stop_deceleration, disable_base=True,
                           arm=not self._arm_busy, wait=False)
-        self._base_enabled = False
         self._twist_sent = None
         self.commands_sent["stop"] += 1
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import os
 import signal
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +47,7 @@ class SimService:
         self._stop = threading.Event()
         self.stop_reason = ""
         self._parent = os.getppid() if exit_with_parent else None
+        self._handlers = self._command_table()
 
     def request_stop(self, reason: str) -> None:
         self.stop_reason = self.stop_reason or reason
@@ -76,38 +77,55 @@ class SimService:
 
     # -- requests -----------------------------------------------------------------------
     def handle(self, req: Mapping[str, Any], _peer: Peer) -> Any:
+        """Dispatch one request (see the module docstring)."""
         cmd = req.get("cmd")
+        handler = self._handlers.get(cmd) if isinstance(cmd, str) else None
+        if handler is None:
+            raise MmctlError(f"unknown command {cmd!r}; known: {', '.join(self._handlers)}")
+        return handler(req)
+
+    def _command_table(self) -> dict[str, Callable[[Mapping[str, Any]], Any]]:
         w = self.world
-        if cmd == "status":
-            return {**w.status(), "pid": os.getpid(), "config": self.cfg.name,
-                    "person": self._person(), "faults_known": FAULTS}
-        if cmd == "push":
-            w.set_push(req.get("force"), req.get("seconds"))
-        elif cmd == "person":
-            if "on" in req:
-                w.set_push(None)
-                w.human_on = bool(req["on"]) and self.cfg.sim.human
-            if "hold" in req:
-                hold = req["hold"]
-                if not isinstance(hold, (int, float)) or isinstance(hold, bool):
-                    raise MmctlError(f"hold needs seconds (a number), got {hold!r}")
-                w.hold(float(hold))
-        elif cmd == "press":
-            w.command({"press": True})
-        elif cmd == "fault":
-            name = req.get("name")
-            if not isinstance(name, str):
-                raise MmctlError(f"fault needs a name; known: {', '.join(FAULTS)}")
-            w.inject(name, bool(req.get("on", True)))
-        elif cmd == "log":
-            return self._log(req)
-        elif cmd == "stop":
-            self.request_stop("requested")
-            return {"stopping": True}
-        else:
-            raise MmctlError(f"unknown command {cmd!r}; known: status, push, person, press, "
-                             "fault, log, stop")
-        return {**w.status(), "person": self._person()}
+        return {
+            "status": lambda req: {**w.status(), "pid": os.getpid(), "config": self.cfg.name,
+                                   "person": self._person(), "faults_known": FAULTS},
+            "push": self._cmd_push,
+            "person": self._cmd_person,
+            "press": lambda req: self._then_status(w.command({"press": True})),
+            "fault": self._cmd_fault,
+            "log": self._log,
+            "stop": self._cmd_stop,
+        }
+
+    def _then_status(self, _done: object = None) -> dict[str, Any]:
+        return {**self.world.status(), "person": self._person()}
+
+    def _cmd_push(self, req: Mapping[str, Any]) -> Any:
+        self.world.set_push(req.get("force"), req.get("seconds"))
+        return self._then_status()
+
+    def _cmd_person(self, req: Mapping[str, Any]) -> Any:
+        w = self.world
+        if "on" in req:
+            w.set_push(None)
+            w.human_on = bool(req["on"]) and self.cfg.sim.human
+        if "hold" in req:
+            hold = req["hold"]
+            if not isinstance(hold, (int, float)) or isinstance(hold, bool):
+                raise MmctlError(f"hold needs seconds (a number), got {hold!r}")
+            w.hold(float(hold))
+        return self._then_status()
+
+    def _cmd_fault(self, req: Mapping[str, Any]) -> Any:
+        name = req.get("name")
+        if not isinstance(name, str):
+            raise MmctlError(f"fault needs a name; known: {', '.join(FAULTS)}")
+        self.world.inject(name, bool(req.get("on", True)))
+        return self._then_status()
+
+    def _cmd_stop(self, req: Mapping[str, Any]) -> Any:
+        self.request_stop("requested")
+        return {"stopping": True}
 
     def _person(self) -> str:
         st = self.world.status()
