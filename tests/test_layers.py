@@ -37,3 +37,39 @@ def test_the_check_sees_an_import() -> None:
     """The walk finds lazy imports inside functions (what the rule is about)."""
     found = _imports(SRC / "commands" / "sim.py")
     assert any(name == "mmctl.sim.service" for _line, name in found)
+
+
+def test_the_daemon_loads_no_optional_extra() -> None:
+    """`pip install mmctl` (no extras) runs the daemon: building it and its command
+    loads none of the telemetry, study or bench extras' modules (telemetry off)."""
+    import json
+    import subprocess
+    import sys
+
+    from mmctl.extras import EXTRAS
+
+    code = (
+        "import json, sys\n"
+        "import mmctl.cli, mmctl.commands.run\n"
+        "from mmctl.config import default_config\n"
+        "from mmctl.runtime.factory import create_daemon\n"
+        "create_daemon(default_config(), None, attach_sim=False)\n"
+        "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=120).stdout
+    loaded = set(json.loads(out))
+    optional = {m for mods in EXTRAS.values() for m in mods}
+    assert loaded & optional == set()
+    assert {"numpy", "pinocchio", "can", "canopen"} <= loaded  # the check sees imports
+
+
+def test_a_missing_extra_is_one_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    from mmctl import extras
+    from mmctl.errors import MmctlError
+
+    monkeypatch.setitem(extras.EXTRAS, "telemetry", ("rerun", "mmctl_no_such_module"))
+    with pytest.raises(MmctlError, match=r"telemetry \(--viewer\) needs the 'telemetry' extra "
+                                         r"\(missing: mmctl_no_such_module\): "
+                                         r"pip install 'mmctl\[telemetry\]'"):
+        extras.require("telemetry", "telemetry (--viewer)")
+    extras.require("study", "the study's figures")  # installed here: no error

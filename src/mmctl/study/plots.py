@@ -22,6 +22,9 @@ _COLOURS = ("tab:red", "tab:orange", "tab:green", "tab:blue", "tab:purple")
 
 
 def _pyplot() -> Any:
+    from mmctl.extras import require
+
+    require("study", "the study's figures")
     import matplotlib
 
     matplotlib.use("Agg")

@@ -70,6 +70,9 @@ class Recording(NamedTuple):
 
 
 def _store(path: str | Path) -> Any:
+    from mmctl.extras import require
+
+    require("telemetry", "reading a recording")
     from rerun.chunk import RrdReader
 
     p = Path(path)

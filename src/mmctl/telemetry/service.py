@@ -75,6 +75,9 @@ class TelemetryService:
         """
         if not self.enabled or self.publisher is not None:
             return
+        from mmctl.extras import require
+
+        require("telemetry", "telemetry (--viewer, --connect, --record)")
         from mmctl.telemetry.publisher import Publisher
         from mmctl.telemetry.rerun_sink import RerunSink
         from mmctl.telemetry.scene import SceneBuilder
