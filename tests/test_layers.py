@@ -73,3 +73,24 @@ def test_a_missing_extra_is_one_clear_error(monkeypatch: pytest.MonkeyPatch) -> 
                                          r"pip install 'mmctl\[telemetry\]'"):
         extras.require("telemetry", "telemetry (--viewer)")
     extras.require("study", "the study's figures")  # installed here: no error
+
+
+def test_mode_names_come_from_one_enum() -> None:
+    """The config's choices, the controller, the CLI and the telemetry codes all use
+    :class:`mmctl.config.control.Mode`."""
+    from typing import get_args
+
+    from mmctl.cli import build_parser
+    from mmctl.config.control import STRATEGIES, Mode, Strategy, SwitchMode
+    from mmctl.control import step
+    from mmctl.telemetry import ring
+
+    assert STRATEGIES == get_args(Strategy) == tuple(m.value for m in Mode)
+    assert step.Mode is Mode and step.SwitchMode is SwitchMode
+    assert set(step.SOLVERS) == set(STRATEGIES) - {Mode.SWITCH.value}
+    modes = [m for m in ring.MODES if m != "idle"]
+    assert [m.split("/")[0] for m in modes] == [
+        s for s in STRATEGIES for _ in (SwitchMode if s == Mode.SWITCH.value else (s,))]
+    sub = build_parser()._subparsers._group_actions[0].choices  # type: ignore[union-attr]
+    mode_cmd = sub["mode"]
+    assert any(tuple(a.choices or ()) == STRATEGIES for a in mode_cmd._actions)

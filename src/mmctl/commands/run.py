@@ -59,8 +59,13 @@ def _run(args: argparse.Namespace) -> int:
     socket_path = Path(args.socket) if args.socket else resolve_socket_path(cfg.daemon.socket_path)
     from mmctl.telemetry.service import TelemetryService, destinations_from
 
-    telemetry = TelemetryService(cfg, destinations_from(cfg, viewer=args.viewer,
-                                                        connect=args.connect, record=args.record))
+    destinations = destinations_from(cfg, viewer=args.viewer, connect=args.connect,
+                                     record=args.record)
+    if destinations.any:  # before anything starts: a missing extra is one line
+        from mmctl.extras import require
+
+        require("telemetry", "telemetry (--viewer, --connect, --record)")
+    telemetry = TelemetryService(cfg, destinations)
     daemon = create_daemon(cfg, socket_path, sim_log=Path(args.sim_log) if args.sim_log else None,
                            telemetry=telemetry)
     view = None

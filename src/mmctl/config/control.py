@@ -2,15 +2,37 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from enum import Enum
+from typing import Literal, get_args
 
 from mmctl.config.schema import param, section, sub
 from mmctl.errors import ConfigError
 
+
+class Mode(str, Enum):
+    """The IDK strategy selected by the operator (``idk.strategy``, `mmctl mode`): the one
+    list of mode names (the config's choices, the controller's, the telemetry codes)."""
+
+    MIN_ENERGY = "min-energy"
+    LOCOMOTION = "locomotion"
+    SWITCH = "switch"
+    MANIPULATION = "manipulation"
+    CONSTRAINED = "constrained-min-energy"
+
+
+class SwitchMode(str, Enum):
+    """Sub-mode of the switch benchmark (``idk.switch.initial``, `mmctl switch`)."""
+
+    MANIPULATION = "manipulation"
+    LOCOMOTION = "locomotion"
+
+
+#: the names of :class:`Mode`, in its order
+STRATEGIES: tuple[str, ...] = tuple(m.value for m in Mode)
+#: the config schema's type of a mode name (a Literal: the schema checks the choices)
 Strategy = Literal["min-energy", "locomotion", "switch", "manipulation", "constrained-min-energy"]
-STRATEGIES: tuple[str, ...] = (
-    "min-energy", "locomotion", "switch", "manipulation", "constrained-min-energy"
-)
+if get_args(Strategy) != STRATEGIES:  # pragma: no cover -- a edit that forgot one of them
+    raise AssertionError(f"config.control.Strategy {get_args(Strategy)} != Mode {STRATEGIES}")
 
 
 @section
@@ -51,7 +73,7 @@ class LocomotionConfig:
 class SwitchConfig:
     """The switch benchmark: manipulation (arm only) <-> locomotion, blended."""
 
-    initial: Literal["manipulation", "locomotion"] = param("manipulation")
+    initial: Literal["manipulation", "locomotion"] = param("manipulation")  # SwitchMode
     blend_time: float = param(0.3, unit="s", gt=0.0, le=5.0, doc="cross-fade time of a toggle")
 
 

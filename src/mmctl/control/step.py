@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 from scipy.linalg import lapack
 
 from mmctl.config import Config
+from mmctl.config.control import Mode, SwitchMode
 from mmctl.control.admittance import Admittance
 from mmctl.control.energy import Energy, kinetic_energy
 from mmctl.control.limits import Limits
@@ -44,25 +45,9 @@ from mmctl.model.robot import RobotModel, planar_pose
 Vec = NDArray[np.float64]
 
 
-class Mode(str, Enum):
-    """The IDK strategy selected by the operator (``idk.strategy``)."""
-
-    MIN_ENERGY = "min-energy"
-    LOCOMOTION = "locomotion"
-    SWITCH = "switch"
-    MANIPULATION = "manipulation"
-    CONSTRAINED = "constrained-min-energy"
-
-
-class SwitchMode(str, Enum):
-    """Sub-mode of the switch benchmark."""
-
-    MANIPULATION = "manipulation"
-    LOCOMOTION = "locomotion"
-
-
 #: The solvers, in the order of :attr:`ControllerState.weights`.
-SOLVERS: tuple[str, ...] = ("min-energy", "locomotion", "manipulation", "constrained-min-energy")
+SOLVERS: tuple[str, ...] = (Mode.MIN_ENERGY.value, Mode.LOCOMOTION.value,
+                            Mode.MANIPULATION.value, Mode.CONSTRAINED.value)
 
 
 class UnknownMode(MmctlError, ValueError):
