@@ -75,7 +75,7 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
 
 
 def test_a_fault_during_the_run_is_flagged() -> None:
-    from mmctl.commands.bench_loop import fault_warning
+    from mmctl.bench.loop import fault_warning
 
     assert fault_warning({"faults": 0}) is None
     text = fault_warning({"faults": 2})
@@ -84,7 +84,7 @@ def test_a_fault_during_the_run_is_flagged() -> None:
 
 
 def test_verdict_names_each_target_met_or_not_and_against_sleep() -> None:
-    from mmctl.commands.bench_loop import TARGETS, verdict
+    from mmctl.bench.loop import TARGETS, verdict
 
     loop = {"compute_p99_us": 541.0, "latency_p99_us": 14.0, "miss_rate": 0.001}
     sleep = {"compute_p99_us": 626.0, "latency_p99_us": 76.0, "miss_rate": 0.0009}

@@ -1,6 +1,7 @@
 """The daemon's process holds what it holds on the robot: `mmctl.runtime` (and the
-transports it loads) import nothing from the simulation (`mmctl.sim`) or the study
-(`mmctl.study`), at any depth of the module, lazily or not."""
+transports, control chain and telemetry it loads) import nothing from the simulation
+(`mmctl.sim`), the study (`mmctl.study`) or the benchmarks (`mmctl.bench`), at any depth
+of the module, lazily or not."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "mmctl"
-FORBIDDEN = ("mmctl.sim", "mmctl.study")
+FORBIDDEN = ("mmctl.sim", "mmctl.study", "mmctl.bench")
 
 
 def _imports(path: Path) -> list[tuple[int, str]]:
@@ -23,13 +24,13 @@ def _imports(path: Path) -> list[tuple[int, str]]:
     return out
 
 
-@pytest.mark.parametrize("package", ["runtime", "transports", "control", "model", "config"])
+@pytest.mark.parametrize("package", ["runtime", "transports", "control", "model", "config",
+                                     "telemetry"])
 def test_daemon_side_packages_never_import_the_simulation(package: str) -> None:
     bad = [f"{p.relative_to(SRC)}:{line}: {name}"
            for p in sorted((SRC / package).rglob("*.py"))
            for line, name in _imports(p)
-           if name == FORBIDDEN[0] or name.startswith(tuple(f + "." for f in FORBIDDEN))
-           or name in FORBIDDEN]
+           if name in FORBIDDEN or name.startswith(tuple(f + "." for f in FORBIDDEN))]
     assert bad == []
 
 

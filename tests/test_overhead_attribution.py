@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmctl.bench.telemetry_overhead import overlapping_misses
 from mmctl.runtime.timing import TimingSnapshot
-from mmctl.telemetry.overhead import overlapping_misses
 from mmctl.telemetry.publisher import BusyRing
 
 P = 2_000_000  # period [ns]
@@ -48,7 +48,7 @@ def test_busy_ring_keeps_closed_intervals_in_order() -> None:
 
 
 def test_pairwise_growth_ignores_a_burst_in_one_pair() -> None:
-    from mmctl.telemetry.overhead import Phase, _pairs, _report
+    from mmctl.bench.telemetry_overhead import Phase, _pairs, _report
 
     def phase(on: bool, compute_us: float, burst: bool = False, missed: int = 0) -> Phase:
         compute = np.full(1000, compute_us * 1e3, dtype=np.int64)
@@ -76,7 +76,7 @@ def _phases(pairs: int, on_scale: float, misses_on: int = 0, seed: int = 3) -> l
     """Alternating off/on windows of 1000 gamma-distributed compute times whose scale
     drifts from pair to pair (the machine); "on" multiplies them by ``on_scale`` and
     has ``misses_on`` late cycles (one in every 1000 cycles in both conditions too)."""
-    from mmctl.telemetry.overhead import Phase
+    from mmctl.bench.telemetry_overhead import Phase
 
     rng = np.random.default_rng(seed)
     out = []
@@ -94,7 +94,7 @@ def _phases(pairs: int, on_scale: float, misses_on: int = 0, seed: int = 3) -> l
 
 
 def test_growth_interval_covers_the_true_growth_and_judges_the_target() -> None:
-    from mmctl.telemetry.overhead import growth_interval, verdict
+    from mmctl.bench.telemetry_overhead import growth_interval, verdict
 
     ci = growth_interval(_phases(60, 1.05))
     lo, hi = ci["compute_p99_growth_ci"]
@@ -114,7 +114,7 @@ def test_growth_interval_covers_the_true_growth_and_judges_the_target() -> None:
 
 
 def test_growth_interval_of_an_aa_contains_zero_and_needs_pairs() -> None:
-    from mmctl.telemetry.overhead import MIN_PAIRS, growth_interval, verdict
+    from mmctl.bench.telemetry_overhead import MIN_PAIRS, growth_interval, verdict
 
     ci = growth_interval(_phases(40, 1.0))
     lo, hi = ci["compute_p99_growth_ci"]
@@ -127,7 +127,7 @@ def test_a_stall_of_the_machine_changes_no_interval() -> None:
     """Cycles beyond every window's p99 share the histograms' last bin: the longest
     cycle of the run stretched to 60 ms gives the same intervals, and the histograms
     stay as wide as the largest window p99, not the stall."""
-    from mmctl.telemetry.overhead import Phase, _pair_histograms, growth_interval
+    from mmctl.bench.telemetry_overhead import Phase, _pair_histograms, growth_interval
 
     calm = _phases(20, 1.05)
     k = int(np.argmax([p.snapshot.compute_ns.max() for p in calm]))

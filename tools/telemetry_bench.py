@@ -24,10 +24,10 @@ import time
 
 import numpy as np
 
+from mmctl.bench.telemetry_overhead import compare, format_report
 from mmctl.config import default_config
 from mmctl.runtime.core import ControlCore
 from mmctl.runtime.loop import Tick
-from mmctl.telemetry.overhead import compare, format_report
 from mmctl.types import ArmState, Odometry, Wrench
 
 

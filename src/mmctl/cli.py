@@ -37,8 +37,8 @@ COMMANDS: list[tuple[str, str, str]] = [
 #: group -> (help, [(sub-command, module, one-line help)])
 GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
     "bench": ("benchmarks that print figures", [
-        ("idk", "mmctl.commands.bench_idk", "time the IDK strategies vs the paper's explicit inverse"),
-        ("loop", "mmctl.commands.bench_loop", "500 Hz loop timing vs a time.sleep loop"),
+        ("idk", "mmctl.bench.idk", "time the IDK strategies vs the paper's explicit inverse"),
+        ("loop", "mmctl.bench.loop", "500 Hz loop timing vs a time.sleep loop"),
     ]),
     "probe": ("bring-up probes for one device", [
         ("sensor", "mmctl.commands.probe_sensor", "read the force/torque sensor, print the wrench"),

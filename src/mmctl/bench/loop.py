@@ -205,7 +205,7 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         result["loop"]["armed_at_end"] = result["sleep_baseline"]["armed_at_end"] = (
             daemon.safety.armed)
         if args.telemetry:
-            from mmctl.telemetry.overhead import windows_on_daemon
+            from mmctl.bench.telemetry_overhead import windows_on_daemon
 
             result["telemetry_seconds"] = args.telemetry_seconds
             result["telemetry"] = windows_on_daemon(daemon, args.telemetry_seconds,
@@ -228,7 +228,7 @@ def _idk_step(cfg: Any, n: int = 5000) -> dict[str, float]:
     and p99 [us]: what the daemon's step would cost without a loop around it."""
     import numpy as np
 
-    from mmctl.commands.bench_idk import _Cases, _step_cycle
+    from mmctl.bench.idk import _Cases, _step_cycle
 
     cycle = _step_cycle(cfg, _Cases(cfg, n, 0))
     for i in range(min(n, 500)):
@@ -371,8 +371,8 @@ def _print_table(r: dict[str, Any]) -> None:
         lat = f"{f['latency_p50_us']:.0f}/{f['latency_p99_us']:.0f}/{f['latency_p999_us']:.0f}"
         print(f"{label:22}{comp:>28}{step:>16}{lat:>30}{100 * f['miss_rate']:>10.2f}%")
     if "telemetry" in r:
-        from mmctl.telemetry.overhead import format_report
-        from mmctl.telemetry.overhead import verdict as telemetry_verdict
+        from mmctl.bench.telemetry_overhead import format_report
+        from mmctl.bench.telemetry_overhead import verdict as telemetry_verdict
 
         t = r["telemetry"]
         print(f"\ntelemetry off vs on (daemon loop, {t['phases']} alternating "
