@@ -161,3 +161,30 @@ def test_ring_reader_never_sees_torn_rows() -> None:
     finally:
         stop.set()
         th.join()
+
+
+def test_the_wait_is_the_one_given_at_construction() -> None:
+    """The loop waits for each deadline only through its wait strategy: a recording
+    one sees every deadline, and the ticks carry the wake times it returned."""
+    from mmctl.runtime.loop import PlainSleep
+
+    seen: list[int] = []
+    plain = PlainSleep()
+
+    def wait(deadline: int) -> int:
+        seen.append(deadline)
+        plain(deadline)
+        return deadline + 12_345  # a wake time only this wait reports
+
+    ticks: list[Tick] = []
+    done = threading.Event()
+
+    def body(t: Tick) -> None:
+        ticks.append(t)
+        if len(ticks) == 20:
+            done.set()
+
+    loop = CycleLoop(body, rate_hz=500.0, wait=wait)
+    _run(loop, done)
+    assert [t.deadline_ns for t in ticks] == seen[:len(ticks)]
+    assert all(t.wake_ns == t.deadline_ns + 12_345 for t in ticks)

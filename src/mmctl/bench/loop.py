@@ -173,7 +173,9 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
     from mmctl.runtime.factory import create_daemon
     from mmctl.telemetry.service import TelemetryService
 
-    daemon = create_daemon(cfg, socket_path=None, telemetry=TelemetryService(cfg))
+    wait = AlternatingWait(int(cfg.loop.spin_margin * 1e9))
+    daemon = create_daemon(cfg, socket_path=None, telemetry=TelemetryService(cfg),
+                           loop_wait=wait)
     result: dict[str, Any] = {"seconds": args.seconds, "windows": args.windows,
                               "rate_hz": cfg.loop.rate_hz,
                               "rt_priority": cfg.loop.rt_priority,
@@ -200,7 +202,7 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
                 time.sleep(0.1)
         daemon.sim.start_human()
         time.sleep(1.0)  # warm-up
-        result["loop"], result["sleep_baseline"] = _interleaved(daemon, args.seconds,
+        result["loop"], result["sleep_baseline"] = _interleaved(daemon, wait, args.seconds,
                                                                 args.windows)
         result["loop"]["armed_at_end"] = result["sleep_baseline"]["armed_at_end"] = (
             daemon.safety.armed)
@@ -313,28 +315,50 @@ def _first_response(log: list[tuple[float, Any]], t: float, diff: Any,
     return None
 
 
-def _interleaved(daemon: Any, seconds: float, windows: int
+class AlternatingWait:
+    """The daemon loop's wait for the benchmark: its own (sleep, then spin; 1 us timer
+    slack) or, while :attr:`plain` is set, one plain ``time.sleep`` with the kernel's
+    default timer slack; a switch takes effect at the next cycle."""
+
+    def __init__(self, spin_margin_ns: int):
+        from mmctl.runtime.loop import PlainSleep, SpinWait
+
+        self.plain = False
+        self._was = False
+        self._spin, self._sleep = SpinWait(spin_margin_ns), PlainSleep()
+
+    def __call__(self, deadline: int) -> int:
+        from mmctl.runtime.loop import DEFAULT_TIMER_SLACK_NS, LOOP_TIMER_SLACK_NS, set_timer_slack
+
+        plain = self.plain
+        if plain is not self._was:  # on the loop thread: the slack is per thread
+            self._was = plain
+            set_timer_slack(DEFAULT_TIMER_SLACK_NS if plain else LOOP_TIMER_SLACK_NS)
+        return self._sleep(deadline) if plain else self._spin(deadline)
+
+
+def _interleaved(daemon: Any, wait: AlternatingWait, seconds: float, windows: int
                  ) -> tuple[dict[str, float | int], dict[str, float | int]]:
     """``windows`` pairs of windows of ``seconds / windows``: the loop's wait, then the
-    plain sleep (:attr:`~mmctl.runtime.loop.CycleLoop.plain_sleep`); pooled figures of
+    plain sleep (:class:`AlternatingWait`); pooled figures of
     each.  The first cycles after a switch (``_SETTLE``) are not counted."""
     import numpy as np
 
     from mmctl.runtime.timing import concat, cycle_rows
 
-    loop, ring = daemon.loop, daemon.ring
+    ring = daemon.ring
     window = seconds / windows
     snaps: dict[bool, list[Any]] = {False: [], True: []}
     try:
         for i in range(2 * windows):
             plain = i % 2 == 1
-            loop.plain_sleep = plain
+            wait.plain = plain
             time.sleep(_SETTLE)
             c0 = ring.count
             time.sleep(window)
             snaps[plain].append(ring.snapshot(ring.count - c0))
     finally:
-        loop.plain_sleep = False
+        wait.plain = False
     from mmctl.runtime.daemon import PHASES
 
     out = []

@@ -43,7 +43,7 @@ from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.devices import Devices
 from mmctl.runtime.ipc import ControlServer, Peer
 from mmctl.runtime.logging import RateLimiter
-from mmctl.runtime.loop import CycleLoop, Tick
+from mmctl.runtime.loop import CycleLoop, Tick, Wait
 from mmctl.runtime.notify import Notifier
 from mmctl.runtime.pmqos import CpuLatencyRequest
 from mmctl.runtime.safety import SafetyMonitor, SafetyState
@@ -91,12 +91,13 @@ class Daemon:
     ``start(should_stop)``, ``start_human()``, ``hold(seconds)``, ``status()``,
     ``close()``), or None; telemetry: a
     :class:`~mmctl.telemetry.service.TelemetryService` (its hook becomes
-    :attr:`sample_hook`, ``trial`` requests go to it), or None.
+    :attr:`sample_hook`, ``trial`` requests go to it), or None; loop_wait: the loop's
+    wait for each deadline (default: sleep, then spin; benchmarks give their own).
     """
 
     def __init__(self, cfg: Config, devices: Devices, core: ControlCore, *,
                  socket_path: Path | None = None, notifier: Notifier | None = None,
-                 sim: Any = None, telemetry: Any = None):
+                 sim: Any = None, telemetry: Any = None, loop_wait: Wait | None = None):
         self.cfg = cfg
         self.devices = devices
         self.core = core
@@ -119,6 +120,7 @@ class Daemon:
             max_consecutive_misses=cfg.loop.max_consecutive_misses,
             max_total_misses=cfg.loop.max_total_misses, ring=self.ring,
             rt_priority=cfg.loop.rt_priority, cpu_affinity=cfg.loop.cpu_affinity,
+            wait=loop_wait,
         )
         self.period = 1.0 / cfg.loop.rate_hz
         self.server = (ControlServer(socket_path, self.handle, cfg.daemon.socket_mode)

@@ -13,10 +13,10 @@ fault.  Timings of every cycle go to a :class:`~mmctl.runtime.timing.TimingRing`
 An exception escaping the body stops the loop; it is stored in :attr:`CycleLoop.error`
 and re-raised by :meth:`CycleLoop.join`.
 
-:attr:`CycleLoop.plain_sleep` (benchmarks only) swaps the wait for a plain
-``time.sleep`` to each absolute deadline with the kernel's default timer slack, at the
-next cycle, so that ``mmctl bench loop`` can interleave windows of both waits on one
-running loop: same thread, same work, same machine state, only the wait differs.
+The wait is a strategy given once at construction (:class:`Wait`; default
+:class:`SpinWait`): the loop calls it and nothing else per cycle.  ``mmctl bench loop``
+gives its own, which alternates between this wait and a plain ``time.sleep``
+(:class:`PlainSleep`) to interleave windows of both on one running loop.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import structlog
 
@@ -106,13 +106,51 @@ def apply_realtime(rt_priority: int, cpu_affinity: Sequence[int],
     return problems
 
 
+class Wait(Protocol):
+    """Waits until ``deadline`` (``perf_counter_ns``) on the loop thread; returns the
+    wake time [ns]."""
+
+    def __call__(self, deadline: int) -> int: ...
+
+
+class SpinWait:
+    """Sleep until ``spin_margin_ns`` before the deadline, then spin (1 us timer slack,
+    set by :func:`apply_realtime` on the loop thread)."""
+
+    def __init__(self, spin_margin_ns: int):
+        self.spin_margin_ns = spin_margin_ns
+
+    def __call__(self, deadline: int) -> int:
+        clock = time.perf_counter_ns
+        remaining = deadline - clock() - self.spin_margin_ns
+        if remaining > 0:
+            time.sleep(remaining * 1e-9)
+        now = clock()
+        while now < deadline:
+            now = clock()
+        return now
+
+
+class PlainSleep:
+    """One ``time.sleep`` to the deadline, no spin (what a plain Python loop does; the
+    caller sets the timer slack it wants)."""
+
+    def __call__(self, deadline: int) -> int:
+        clock = time.perf_counter_ns
+        remaining = deadline - clock()
+        if remaining > 0:
+            time.sleep(remaining * 1e-9)
+        return clock()
+
+
 class CycleLoop:
     """Runs ``body(tick)`` every period on its own thread.
 
     rate_hz: cycle rate [Hz]; spin_margin: busy-wait window before each deadline [s];
     max_consecutive_misses / max_total_misses: overrun budget (see module doc);
     ring: where per-cycle timings go (a new one if None); rt_priority: SCHED_FIFO
-    priority, 0 = leave the scheduler alone; cpu_affinity: CPUs for the thread.
+    priority, 0 = leave the scheduler alone; cpu_affinity: CPUs for the thread; wait:
+    how to wait for each deadline (default :class:`SpinWait` of ``spin_margin``).
     """
 
     def __init__(
@@ -126,6 +164,7 @@ class CycleLoop:
         rt_priority: int = 0,
         cpu_affinity: Sequence[int] = (),
         name: str = "mmctl-loop",
+        wait: Wait | None = None,
     ):
         if rate_hz <= 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
@@ -143,8 +182,8 @@ class CycleLoop:
         self._done = threading.Event()
         self._thread: threading.Thread | None = None
         self._reset_requested = False
-        self.plain_sleep = False
-        """Benchmarks: wait with a plain ``time.sleep`` (default timer slack, no spin)."""
+        self.wait_for_deadline: Wait = wait if wait is not None else SpinWait(
+            self.spin_margin_ns)
         self.consecutive_misses = 0
         self.total_misses = 0
         self.cycles = 0
@@ -184,39 +223,17 @@ class CycleLoop:
         self._reset_requested = True
 
     # -- the thread ----------------------------------------------------------------
-    def _wait_until(self, deadline: int) -> int:
-        clock = time.perf_counter_ns
-        remaining = deadline - clock() - self.spin_margin_ns
-        if remaining > 0:
-            time.sleep(remaining * 1e-9)
-        now = clock()
-        while now < deadline:
-            now = clock()
-        return now
-
-    @staticmethod
-    def _sleep_until(deadline: int) -> int:
-        """The plain wait (:attr:`plain_sleep`): one ``time.sleep`` to the deadline."""
-        clock = time.perf_counter_ns
-        remaining = deadline - clock()
-        if remaining > 0:
-            time.sleep(remaining * 1e-9)
-        return clock()
-
     def _run(self) -> None:
         apply_realtime(self.rt_priority, self.cpu_affinity)
         clock = time.perf_counter_ns
         period = self.period_ns
         ring = self.ring
         body = self._body
+        wait = self.wait_for_deadline
         deadline = clock() + period
-        plain = False
         try:
             while not self._stop.is_set():
-                if self.plain_sleep is not plain:
-                    plain = self.plain_sleep
-                    set_timer_slack(DEFAULT_TIMER_SLACK_NS if plain else LOOP_TIMER_SLACK_NS)
-                wake = self._sleep_until(deadline) if plain else self._wait_until(deadline)
+                wake = wait(deadline)
                 if self._reset_requested:
                     self._reset_requested = False
                     self.consecutive_misses = 0
