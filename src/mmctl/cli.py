@@ -48,7 +48,7 @@ GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
 }
 
 
-def _add(sub: argparse._SubParsersAction, name: str, module: str, help_: str) -> None:
+def _add(sub: argparse._SubParsersAction[argparse.ArgumentParser], name: str, module: str, help_: str) -> None:
     mod = importlib.import_module(module)
     p = sub.add_parser(name, help=help_, description=mod.__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)

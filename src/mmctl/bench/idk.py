@@ -101,7 +101,8 @@ def _paper_inv(cases: _Cases) -> Callable[[int], Vec]:
         M_inv = np.linalg.inv(M)
         J = k.J
         J_M = M_inv @ J.T @ np.linalg.inv(J @ M_inv @ J.T)
-        return J_M @ cases.v[i] + (eye - J_M @ J) @ G @ (model.q_des - q)
+        qd: Vec = J_M @ cases.v[i] + (eye - J_M @ J) @ G @ (model.q_des - q)
+        return qd
 
     return cycle
 
@@ -123,11 +124,12 @@ def _strategies(cfg: Config, cases: _Cases) -> dict[str, Callable[[int], Vec]]:
               for q, v, z in zip(cases.q, cases.v, cases.z)]
     out: dict[str, Callable[[int], Vec]] = {}
     for name, solver in solvers.items():
-        def cycle(i: int, solver=solver, inertia=needs_m[name],
-                  prev=steady if name == "constrained-min-energy" else None) -> Vec:
+        def cycle(i: int, solver: Any = solver, inertia: bool = needs_m[name],
+                  prev: Any = steady if name == "constrained-min-energy" else None) -> Vec:
             q = cases.q[i]
-            return solver.solve(Problem(model.update(q, inertia), cases.v[i], q,
-                                        zero if prev is None else prev[i], T, cases.z[i]))
+            qd: Vec = solver.solve(Problem(model.update(q, inertia), cases.v[i], q,
+                                           zero if prev is None else prev[i], T, cases.z[i]))
+            return qd
         out[name] = cycle
     qp = solvers["constrained-min-energy"]
 
@@ -185,7 +187,8 @@ def _osqp_cycle(cfg: Config, cases: _Cases) -> Callable[[int], Vec] | None:
         H += rho * (k.J.T @ k.J)
         lb, ub = limits.box_bounds(q, zero, T)
         solver.update(Px=H[p_rows, p_cols], q=g, l=lb, u=ub)
-        return solver.solve(raise_error=False).x
+        x: Vec = solver.solve(raise_error=False).x
+        return x
 
     return cycle
 

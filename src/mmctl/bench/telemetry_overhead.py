@@ -200,7 +200,8 @@ def _quantile_us(hist: np.ndarray, q: float) -> np.ndarray:
     """The ``q`` quantile [us] of each pooled histogram (rows of 1 us bins): the upper
     edge of the first bin where the cumulative count reaches ``q`` of the total."""
     cum = np.cumsum(hist, axis=-1)
-    return np.argmax(cum >= q * cum[..., -1:], axis=-1) + 1.0
+    edges: np.ndarray = np.argmax(cum >= q * cum[..., -1:], axis=-1) + 1.0
+    return edges
 
 
 def growth_interval(phases: list[Phase], confidence: float = 0.95, resamples: int = 2000,
@@ -228,12 +229,14 @@ def growth_interval(phases: list[Phase], confidence: float = 0.95, resamples: in
     # ``axis``: scipy's vectorized statistic signature; resamples run along the last axis
     def growth(idx: np.ndarray, axis: int = -1) -> np.ndarray:
         w = weights(idx)
-        return _quantile_us(w @ h.on, 0.99) / _quantile_us(w @ h.off, 0.99) - 1.0
+        g: np.ndarray = _quantile_us(w @ h.on, 0.99) / _quantile_us(w @ h.off, 0.99) - 1.0
+        return g
 
     def extra_misses(idx: np.ndarray, axis: int = -1) -> np.ndarray:
         w = weights(idx)
         rate = (w @ h.misses) / (w @ h.cycles)
-        return 1e5 * (rate[..., 1] - rate[..., 0])
+        extra: np.ndarray = 1e5 * (rate[..., 1] - rate[..., 0])
+        return extra
 
     idx = np.arange(len(h.off))
     out: dict[str, Any] = {"confidence": confidence, "pairs": len(idx)}

@@ -75,7 +75,8 @@ class Config:
 
 def config_from_dict(data: Any, source: str | None = None) -> Config:
     """Validate a mapping (e.g. parsed YAML) into a :class:`Config`."""
-    return build(Config, data, "", source)
+    cfg: Config = build(Config, data, "", source)
+    return cfg
 
 
 def default_config() -> Config:

@@ -179,7 +179,7 @@ def build(cls: type, data: Any, path: str = "", source: str | None = None) -> An
         key_path = f"{path}.{name}" if path else name
         if name in data:
             kwargs[name] = _convert(key_path, data[name], hints[name], f.metadata, source)
-        elif f.default is _MISSING and f.default_factory is _MISSING:  # type: ignore[misc]
+        elif f.default is _MISSING and f.default_factory is _MISSING:
             if dataclasses.is_dataclass(hints[name]):
                 kwargs[name] = build(hints[name], {}, key_path, source)
             else:

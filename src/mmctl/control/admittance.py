@@ -54,4 +54,5 @@ class Admittance:
 
     def time_constant(self) -> Vec:
         """Per-axis time constant m / b [s]."""
-        return self.mass / self.damping
+        tau: Vec = self.mass / self.damping
+        return tau

@@ -75,7 +75,8 @@ def solve_spd(a: Vec, b: Vec) -> Vec:
     _, x, info = _posv(a, b, lower=1)
     if info != 0:
         x = np.linalg.lstsq(a, b, rcond=None)[0]
-    return x
+    sol: Vec = x
+    return sol
 
 
 def damped_task_solve(
@@ -136,7 +137,7 @@ def min_energy(
         qdot_null = _as_vec(qdot_null)
         r = r - J @ qdot_null
     lam = damped_task_solve(J @ Y, r, singular_threshold, max_damping).x
-    out = Y @ lam
+    out: Vec = Y @ lam
     return out if qdot_null is None else out + qdot_null
 
 

@@ -41,13 +41,15 @@ def odometry_matrix(geom: MecanumConfig) -> Mat:
 def twist_to_wheels(geom_or_w: MecanumConfig | Mat, twist: Mat) -> Mat:
     """Wheel speeds (4,) [rad/s] for a base twist (3,) (vx, vy [m/s], wz [rad/s])."""
     w = geom_or_w if isinstance(geom_or_w, np.ndarray) else wheel_matrix(geom_or_w)
-    return w @ np.asarray(twist, dtype=float)
+    wheels: Mat = w @ np.asarray(twist, dtype=float)
+    return wheels
 
 
 def wheels_to_twist(geom_or_p: MecanumConfig | Mat, wheels: Mat) -> Mat:
     """Base twist (3,) from four wheel speeds [rad/s] (least squares)."""
     p = geom_or_p if isinstance(geom_or_p, np.ndarray) else odometry_matrix(geom_or_p)
-    return p @ np.asarray(wheels, dtype=float)
+    twist: Mat = p @ np.asarray(wheels, dtype=float)
+    return twist
 
 
 def wheel_scale(wheels: Mat, limit: float) -> float:

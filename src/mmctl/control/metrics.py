@@ -21,10 +21,13 @@ class TrialMetrics(NamedTuple):
 def _norms(x: ArrayLike, name: str) -> np.ndarray:
     """Row norms of the translational part: (N,) norms as given, or the first 3 columns."""
     a = np.asarray(x, dtype=float)
+    norms: np.ndarray
     if a.ndim == 1:
-        return np.abs(a)
+        norms = np.abs(a)
+        return norms
     if a.ndim == 2 and a.shape[1] in (3, 6):
-        return np.linalg.norm(a[:, :3], axis=1)
+        norms = np.linalg.norm(a[:, :3], axis=1)
+        return norms
     raise ValueError(f"{name} must be (N,), (N, 3) or (N, 6), got {a.shape}")
 
 

@@ -131,9 +131,8 @@ class StepOutputs(NamedTuple):
 
 
 def _target(mode: Mode, switch: SwitchMode) -> str:
-    if mode is Mode.SWITCH:
-        return switch.value
-    return mode.value
+    target: str = switch.value if mode is Mode.SWITCH else mode.value
+    return target
 
 
 def _one_hot(name: str) -> tuple[float, float, float, float]:
@@ -146,7 +145,7 @@ def _parse(enum: type[Enum], value: object) -> Enum:
     try:
         return enum(value.value if isinstance(value, Enum) else value)
     except ValueError:
-        valid = ", ".join(repr(m.value) for m in enum)  # type: ignore[attr-defined]
+        valid = ", ".join(repr(m.value) for m in enum)
         raise UnknownMode(f"unknown mode {value!r}; valid: {valid}") from None
 
 
@@ -281,4 +280,5 @@ class Controller:
     # --- helpers for the simulator and tests -----------------------------------
     def p_des(self, q: Vec) -> Vec:
         """FK(q_des) (3,) in the world with the base at ``q[6:9]``."""
-        return (planar_pose(q[6], q[7], q[8]) * self.model.fk_base(self.q_des)).translation.copy()
+        p: Vec = (planar_pose(q[6], q[7], q[8]) * self.model.fk_base(self.q_des)).translation.copy()
+        return p

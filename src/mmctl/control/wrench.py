@@ -140,7 +140,8 @@ class WrenchProcessor:
 
     def gravity_wrench(self, r_base_sensor: ArrayLike) -> Vec:
         """(6,) the handle's weight as the sensor measures it, sensor frame [N, N m]."""
-        return self._gravity_map @ np.asarray(r_base_sensor, dtype=np.float64)[2]
+        w: Vec = self._gravity_map @ np.asarray(r_base_sensor, dtype=np.float64)[2]
+        return w
 
     def step(self, state: WrenchState, wrench: Wrench, r_base_sensor: ArrayLike,
              now: float) -> tuple[WrenchState, WrenchOutput]:

@@ -139,7 +139,8 @@ class RobotModel:
         """Pinocchio frame id in :attr:`arm` of a tool-side frame; lists the valid names."""
         if name not in self.frame_ids:
             raise ModelError(f"unknown frame {name!r}; frames: {', '.join(self.frame_ids)}")
-        return self.frame_ids[name]
+        fid: int = self.frame_ids[name]
+        return fid
 
     def fk_base(self, q_a: Mat, frame: str = "tool") -> pin.SE3:
         """Pose of ``frame`` in the base frame for arm joints ``q_a`` (6,) [rad]."""
@@ -154,7 +155,8 @@ class RobotModel:
 
     def position(self, q: Mat, frame: str = "tool") -> Mat:
         """Position (3,) [m] of ``frame`` in the world frame."""
-        return self.fk(q, frame).translation.copy()
+        p: Mat = self.fk(q, frame).translation.copy()
+        return p
 
     def jacobian(self, q: Mat) -> Mat:
         """The (6, 9) whole-body Jacobian J = [J_a J_b] of the tool, control frame."""
@@ -162,7 +164,8 @@ class RobotModel:
 
     def arm_inertia(self, q_a: Mat) -> Mat:
         """M_a(q_a) (6, 6) [kg m^2], UR10e joint-space inertia (CRBA)."""
-        return pin.crba(self.arm, self.arm_data, np.asarray(q_a[:NA], dtype=float)).copy()
+        m: Mat = pin.crba(self.arm, self.arm_data, np.asarray(q_a[:NA], dtype=float)).copy()
+        return m
 
     def block_inertia(self, q_a: Mat) -> Mat:
         """The paper's M(q_a) = blockdiag(M_a(q_a), M_b) (9, 9)."""

@@ -683,8 +683,9 @@ class Daemon:
         if index % self.cfg.loop.base_divider == 0 or last is None:
             return True
         jump = self.cfg.loop.base_jump
-        return (abs(twist[0] - last[0]) > jump or abs(twist[1] - last[1]) > jump
-                or abs(twist[2] - last[2]) > jump)
+        jumped: bool = (abs(twist[0] - last[0]) > jump or abs(twist[1] - last[1]) > jump
+                        or abs(twist[2] - last[2]) > jump)
+        return jumped
 
     def _kick_arm_watchdog(self) -> None:
         """A cycle without speedJ still feeds the controller's RTDE watchdog: only a

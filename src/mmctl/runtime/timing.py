@@ -35,7 +35,7 @@ class TimingSnapshot(NamedTuple):
     missed: I64
     first_index: int
 
-    def __len__(self) -> int:  # type: ignore[override]
+    def __len__(self) -> int:
         return int(self.latency_ns.shape[0])
 
 
@@ -127,7 +127,8 @@ def cycle_rows(per_cycle: NDArray[np.generic], snap: TimingSnapshot) -> NDArray[
     """The entries of a per-cycle array indexed by ``cycle % its size`` (the daemon's
     ``step_ns``, ``hook_ns``) for the snapshot's cycles, in the snapshot's order."""
     idx = np.arange(snap.first_index, snap.first_index + len(snap)) % per_cycle.shape[0]
-    return per_cycle[idx]
+    rows: NDArray[np.generic] = per_cycle[idx]
+    return rows
 
 
 def concat(snaps: list[TimingSnapshot]) -> TimingSnapshot:

@@ -55,7 +55,7 @@ import canopen
 import numpy as np
 import structlog
 from canopen.pdo import PdoMap
-from canopen.sdo import SdoAbortedError
+from canopen.sdo.exceptions import SdoAbortedError
 from numpy.typing import NDArray
 
 from mmctl.config import Config

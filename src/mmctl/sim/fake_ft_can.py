@@ -133,7 +133,8 @@ class FakeFtCanSensor:
 
     def quantisation_bound(self) -> Vec:
         """(6,) worst-case |error| [N, N m] of one decoded sample from gauge rounding."""
-        return 0.5 * np.abs(self.calibration).sum(axis=1) / self._cpu
+        bound: Vec = 0.5 * np.abs(self.calibration).sum(axis=1) / self._cpu
+        return bound
 
     # -- lifecycle ---------------------------------------------------------------------
 

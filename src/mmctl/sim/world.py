@@ -321,7 +321,8 @@ class SimWorld:
         out = np.empty(6)
         out[:3] = f_s + g_s
         out[3:] = _cross(self._lever, f_s) + _cross(self._com, g_s)
-        return out + SENSOR_BIAS
+        measured: Vec = out + SENSOR_BIAS
+        return measured
 
     # -- control-socket commands ----------------------------------------------------------
     def command(self, req: dict[str, Any]) -> dict[str, Any]:

@@ -61,13 +61,18 @@ class ScriptedWrench:
     def wrench(self, t: float) -> Vec:
         i = bisect.bisect_right(self._t, t) - 1
         if i < 0:
-            return self._w[0].copy()
+            return self._row(0)
         if i >= len(self._t) - 1:
-            return self._w[-1].copy()
+            return self._row(-1)
         if not self._interpolate:
-            return self._w[i].copy()
+            return self._row(i)
         s = (t - self._t[i]) / (self._t[i + 1] - self._t[i])
-        return (1.0 - s) * self._w[i] + s * self._w[i + 1]
+        w: Vec = (1.0 - s) * self._w[i] + s * self._w[i + 1]
+        return w
+
+    def _row(self, i: int) -> Vec:
+        row: Vec = self._w[i].copy()
+        return row
 
 
 class CallableWrench:

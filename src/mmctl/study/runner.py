@@ -81,7 +81,8 @@ def run_execution(
     study: StudyConfig, user: int, strategy: str, observe: Observer | None = None
 ) -> tuple[Execution, float, int]:
     """One user with one approach; returns the execution, its CPU time [s] and cycles."""
-    from mmctl.control.step import Controller, Mode, StepInputs
+    from mmctl.config.control import Mode
+    from mmctl.control.step import Controller, StepInputs
 
     cpu0 = time.process_time()
     cfg = study.control_config(strategy)

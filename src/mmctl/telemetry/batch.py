@@ -66,7 +66,7 @@ class Columns(NamedTuple):
     time_ns: I64
     values: dict[str, F64]
 
-    def __len__(self) -> int:  # type: ignore[override]
+    def __len__(self) -> int:
         return int(self.cycle.shape[0])
 
 

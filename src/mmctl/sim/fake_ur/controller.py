@@ -180,36 +180,36 @@ class FakeURController:
 
     def set_protective_stop(self, on: bool = True) -> float:
         """Protective stop: safety bits 2 and 10, joints brake, speed commands ignored."""
-        return self._request("protective_stop", on)
+        return float(self._request("protective_stop", on))
 
     def set_emergency_stop(self, on: bool = True) -> float:
         """Emergency stop: safety bits 6, 7 and 10, joints brake, speed commands ignored."""
-        return self._request("emergency_stop", on)
+        return float(self._request("emergency_stop", on))
 
     def stop_program(self) -> float:
         """Stop the running program (runtime state STOPPED), like the pendant's stop."""
-        return self._request("stop_program")
+        return float(self._request("stop_program"))
 
     def freeze_stream(self, on: bool = True) -> float:
         """Stop (or resume) sending RTDE data packages; sockets stay open."""
-        return self._request("freeze", on)
+        return float(self._request("freeze", on))
 
     def set_remote_control(self, on: bool) -> float:
         """Remote (True) or local (False) control, as the dashboard reports it."""
-        return self._request("remote_control", on)
+        return float(self._request("remote_control", on))
 
     def set_digital_input(self, index: int, on: bool) -> float:
         """Set bit ``index`` (0-17) of ``actual_digital_input_bits`` (a handle button)."""
         if not 0 <= index < 64:
             raise ValueError(f"digital input index must be 0..63, got {index}")
-        return self._request("digital_input", index, on)
+        return float(self._request("digital_input", index, on))
 
     def set_q(self, q: Sequence[float]) -> float:
         """Teleport the joints to ``q`` (6,) [rad], at rest."""
         values = [float(x) for x in q]
         if len(values) != 6 or not all(np.isfinite(values)):
             raise ValueError(f"q must be 6 finite joint angles [rad], got {q!r}")
-        return self._request("set_q", values)
+        return float(self._request("set_q", values))
 
     # -- internals -----------------------------------------------------------------------
 

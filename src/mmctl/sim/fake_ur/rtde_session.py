@@ -195,7 +195,7 @@ class RtdeSession:
             for getter, vector in recipe.getters:
                 v = getter()
                 if vector:
-                    values.extend(v)  # type: ignore[call-overload,arg-type]
+                    values.extend(v)  # type: ignore[arg-type]
                 else:
                     values.append(v)
             out += frame(MsgType.DATA_PACKAGE, recipe.packer.pack(*values))

@@ -53,8 +53,7 @@ import structlog
 from canopen.nmt import NMT_STATES
 from canopen.objectdictionary import ODVariable
 from canopen.pdo import PdoMap
-from canopen.sdo import SdoAbortedError, SdoCommunicationError
-from canopen.sdo.exceptions import SdoError
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError, SdoError
 
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig

@@ -86,7 +86,7 @@ def decode_record(data: bytes) -> RdtRecord:
     if len(data) != RECORD_SIZE:
         raise ProtocolError(f"RDT record must be {RECORD_SIZE} bytes, got {len(data)}")
     rdt_seq, ft_seq, status, *counts = RECORD.unpack(data)
-    return RdtRecord(rdt_seq, ft_seq, status, tuple(counts))  # type: ignore[arg-type]
+    return RdtRecord(rdt_seq, ft_seq, status, tuple(counts))
 
 
 class SequenceTracker:
