@@ -200,6 +200,9 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.1)
+        if daemon.sim is None:
+            raise MmctlError("bench loop needs the simulated robot's own process "
+                             "(sim.enabled, CAN on socketcand)")
         daemon.sim.start_human()
         time.sleep(1.0)  # warm-up
         result["loop"], result["sleep_baseline"] = _interleaved(daemon, wait, args.seconds,

@@ -32,7 +32,7 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import structlog
@@ -44,6 +44,10 @@ from mmctl.runtime.devices import Devices
 from mmctl.runtime.ipc import ControlServer, Peer
 from mmctl.runtime.logging import RateLimiter
 from mmctl.runtime.loop import CycleLoop, Tick, Wait
+
+if TYPE_CHECKING:
+    from mmctl.runtime.sim_link import SimLink
+    from mmctl.telemetry.service import TelemetryService
 from mmctl.runtime.notify import Notifier
 from mmctl.runtime.pmqos import CpuLatencyRequest
 from mmctl.runtime.safety import SafetyMonitor, SafetyState
@@ -54,7 +58,7 @@ log = structlog.get_logger("mmctl.daemon")
 #: The hook telemetry attaches: called on the loop thread once per cycle as
 #: ``hook(result, cycle, t, safety)`` (the cycle's CycleResult, its index, its deadline
 #: since the origin [s], the safety state's name); must not block.
-SampleHook = Callable[[Any, int, float, str], None]
+SampleHook = Callable[[CycleResult, int, float, str], None]
 
 #: Signals that end the daemon by default and are turned into a stop instead: the
 #: service manager's (TERM), a terminal's (INT: Ctrl-C, QUIT: Ctrl-\, HUP: the ssh
@@ -97,7 +101,8 @@ class Daemon:
 
     def __init__(self, cfg: Config, devices: Devices, core: ControlCore, *,
                  socket_path: Path | None = None, notifier: Notifier | None = None,
-                 sim: Any = None, telemetry: Any = None, loop_wait: Wait | None = None):
+                 sim: SimLink | None = None, telemetry: TelemetryService | None = None,
+                 loop_wait: Wait | None = None):
         self.cfg = cfg
         self.devices = devices
         self.core = core
@@ -311,7 +316,7 @@ class Daemon:
             log.warning("auto_enable_failed", error=str(exc))
             return
         log.info("auto_enabled", mode=self.core.mode)
-        if self.cfg.sim.human:  # (a push set meanwhile stays on otherwise)
+        if self.cfg.sim.human and self.sim is not None:  # (else a push set meanwhile stays)
             self.sim.start_human()
 
     # ---------------------------------------------------------- operator commands --
