@@ -20,8 +20,7 @@ def open_sensor(cfg: SensorConfig) -> ForceSensor:
     if cfg.transport == "can":
         from mmctl.transports.sensor.can_ft import CanForceSensor
 
-        return CanForceSensor(cfg.can, stale_timeout=cfg.wrench.stale_timeout,
-                              tare_samples=cfg.wrench.tare_samples)
+        return CanForceSensor(cfg.can, stale_timeout=cfg.wrench.stale_timeout)
     if cfg.transport == "rdt":
         from mmctl.transports.sensor.rdt import RdtForceSensor
 

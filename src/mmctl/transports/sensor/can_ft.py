@@ -37,8 +37,8 @@ naming the row, the missing frame's CAN id and coefficients, and the frames that
 
 Conversion: ``w = diag(1/cpf, 1/cpf, 1/cpf, 1/cpt, 1/cpt, 1/cpt) C sg`` with ``C`` the 6x6
 calibration matrix (row r = output axis), ``sg`` the six gauges.  The sensor has no bias
-of its own on this link: :meth:`CanForceSensor.tare` is a software bias (mean of
-``sensor.wrench.tare_samples`` samples).  Frames on our ids that have the *request's*
+of its own on this link; the tare is the wrench pipeline's
+(:mod:`mmctl.control.wrench`), the same for every transport.  Frames on our ids that have the *request's*
 length are another master's requests and are ignored; frames of our reply ids with any
 other unexpected length are a :class:`~mmctl.errors.ProtocolError`.
 
@@ -207,14 +207,12 @@ class CanForceSensor:
     """:class:`~mmctl.transports.sensor.protocol.ForceSensor` on CAN (see module doc).
 
     cfg: the ``sensor.can`` section; stale_timeout: no fresh sample for longer -> fault
-    [s]; tare_samples: samples averaged by :meth:`tare`.  No I/O before :meth:`connect`.
+    [s].  No I/O before :meth:`connect`.
     """
 
-    def __init__(self, cfg: SensorCanConfig, *, stale_timeout: float = 0.010,
-                 tare_samples: int = 100) -> None:
+    def __init__(self, cfg: SensorCanConfig, *, stale_timeout: float = 0.010) -> None:
         self._cfg = cfg
         self._stale = stale_timeout
-        self._tare_n = tare_samples
         self._timeout = cfg.timeout
         self._id_g0 = frame_id(cfg.base_id, OP_GAUGES)
         self._id_g1 = frame_id(cfg.base_id, OP_GAUGES_2)
@@ -223,7 +221,6 @@ class CanForceSensor:
         self._conv = np.zeros((6, 6))
         self._calibration = np.zeros((6, 6))
         self._counts = (0, 0)
-        self._bias = np.zeros(6)
         self._pending: float | None = None  # monotonic time the request in flight was sent
         self._caller_paced = False  # request_next() was called: it sends the requests
         self._first: bytes | None = None  # gauge frame 1 waiting for frame 2
@@ -319,24 +316,6 @@ class CanForceSensor:
             return self._last
         return self._accept(sample)
 
-    def tare(self) -> None:
-        """Software bias: the mean of ``tare_samples`` fresh samples becomes the zero."""
-        n = self._tare_n
-        acc = np.zeros(6)
-        got = 0
-        seq = -1
-        deadline = time.monotonic() + self._cfg.connect_timeout + 4.0 * n * self._timeout
-        while got < n:
-            w = self.read()
-            if w.sequence != seq:
-                seq = w.sequence
-                acc += w.as_array() + self._bias
-                got += 1
-            if time.monotonic() > deadline:
-                raise TransportError(f"tare: only {got}/{n} samples from {self.link}")
-        self._bias = acc / n
-        log.info("sensor_tared", transport="can", bias=self._bias.round(4).tolist())
-
     def stats(self) -> SensorStats:
         """Fresh samples and lost requests since connect."""
         return SensorStats(self._seq, self._lost, 0)
@@ -367,7 +346,7 @@ class CanForceSensor:
         else:
             self._send_request(t)  # pipeline: the sensor answers while the cycle computes
         check_status(status, gauges)
-        w = self._conv @ gauges - self._bias
+        w = self._conv @ gauges
         self._seq += 1
         wrench = Wrench(w[:3], w[3:], t, self._seq, status)
         self._last = wrench

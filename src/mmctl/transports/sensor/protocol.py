@@ -54,9 +54,6 @@ class ForceSensor(Protocol):
     def read(self) -> Wrench:
         """The newest sample: force [N], torque [N m] in the sensor frame. Cheap (500 Hz)."""
 
-    def tare(self) -> None:
-        """Zero the current load (RDT: the device's bias command; CAN: software bias)."""
-
     def close(self) -> None:
         """Release the link; safe to call twice."""
 

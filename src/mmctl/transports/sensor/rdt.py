@@ -56,7 +56,6 @@ RDT_PORT = 49152
 RDT_HEADER = 0x1234
 CMD_STOP = 0x0000
 CMD_START = 0x0002
-CMD_BIAS = 0x0042
 REQUEST = struct.Struct(">HHI")
 RECORD = struct.Struct(">III6i")
 RECORD_SIZE = RECORD.size  # 36
@@ -64,7 +63,6 @@ _SEQ = struct.Struct(">I")
 _WRAP = 1 << 32
 _HALF = 1 << 31
 _MISSING_WINDOW = 256
-_BIAS_SKIP = 2  # records the device may have sent before it processed a bias command
 
 
 def encode_request(command: int, count: int = 0) -> bytes:
@@ -204,15 +202,6 @@ class RdtForceSensor:
                                   lost=self._tracker.lost, link=self.link)
             return self._last
         return fresh
-
-    def tare(self) -> None:
-        """Send the device's bias command and wait until biased records arrive."""
-        if self._sock is None:
-            raise TransportError(f"RDT F/T sensor {self.link} is not connected")
-        self._drain()
-        self._send(CMD_BIAS)
-        self._wait_records(_BIAS_SKIP + 1, self._cfg.connect_timeout)
-        log.info("sensor_tared", transport="rdt", link=self.link)
 
     def stats(self) -> SensorStats:
         """Fresh records and the sequence counters since connect."""
