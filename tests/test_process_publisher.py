@@ -36,9 +36,13 @@ def test_the_child_writes_the_recording_from_the_shared_ring(tmp_path: Path) -> 
     pub.start()
     child = pub.pid
     assert child is not None and child != os.getpid()
-    # background work: it only gets a CPU nothing else wants, and not the loop's
-    assert os.sched_getscheduler(child) == os.SCHED_IDLE
-    assert os.sched_getaffinity(child) == (mine - {loop_cpu} or mine)
+    # background work, every thread of it (the class and the affinity are per thread):
+    # it only gets a CPU nothing else wants, and not the loop's
+    tids = [int(t) for t in os.listdir(f"/proc/{child}/task")]
+    assert len(tids) > 1  # the publisher's thread besides the main one
+    for tid in tids:
+        assert os.sched_getscheduler(tid) == os.SCHED_IDLE, tid
+        assert os.sched_getaffinity(tid) == (mine - {loop_cpu} or mine), tid
     assert pub.ring is not None and pub.ring.path is None  # unlinked once mapped by both
     tracker = TrialTracker(0.002, pub.post_event)  # its events cross to the child
     rows = None

@@ -246,22 +246,28 @@ class ProcessPublisher:
 
 
 def _background(avoid_cpus: tuple[int, ...] = ()) -> None:
-    """Make this process background work: off the CPUs in ``avoid_cpus`` (the loop's,
+    """Make this process background work, every thread of it (Linux applies affinity,
+    scheduling class and nice per thread): off the CPUs in ``avoid_cpus`` (the loop's,
     when it is pinned: its caches stay its own) as long as another CPU is allowed, and
     SCHED_IDLE (it runs only on a CPU nothing else wants, and any waking thread of the
     daemon -- one that may hold the daemon's interpreter lock the loop needs -- preempts
     it at once), else ``nice +10``."""
-    if avoid_cpus and hasattr(os, "sched_setaffinity"):
-        others = os.sched_getaffinity(0) - set(avoid_cpus)
-        if others:
-            os.sched_setaffinity(0, others)
-    if hasattr(os, "SCHED_IDLE"):
-        try:
-            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-            return
-        except OSError:
-            pass
-    os.nice(NICE)
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        tids = [0]
+    for tid in tids:
+        if avoid_cpus and hasattr(os, "sched_setaffinity"):
+            others = os.sched_getaffinity(tid) - set(avoid_cpus)
+            if others:
+                os.sched_setaffinity(tid, others)
+        if hasattr(os, "SCHED_IDLE"):
+            try:
+                os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+                continue
+            except OSError:
+                pass
+        os.setpriority(os.PRIO_PROCESS, tid, NICE)
 
 
 def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destinations,
@@ -271,7 +277,6 @@ def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destina
     """The child: map the ring, open the sink, run the publisher until told to close."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    _background(avoid_cpus)
     from mmctl.telemetry.publisher import Publisher
     from mmctl.telemetry.rerun_sink import RerunSink
 
@@ -289,6 +294,9 @@ def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destina
                         scene_rate_hz=scene_rate_hz, ring=ring, scene=scene, pace=False,
                         mecanum=mecanum)
         pub.start()
+        # start-up (imports, rerun's sinks) at normal priority: in the background class
+        # from the start, a busy machine kept the child from ever getting ready
+        _background(avoid_cpus)
         conn.send(("ready",))
         while True:
             if not conn.poll(0.5):
