@@ -362,7 +362,7 @@ def _interleaved(daemon: Any, wait: AlternatingWait, seconds: float, windows: in
             snaps[plain].append(ring.snapshot(ring.count - c0))
     finally:
         wait.plain = False
-    from mmctl.runtime.daemon import PHASES
+    from mmctl.runtime.driver import PHASES
 
     out = []
     for plain in (False, True):
@@ -406,7 +406,7 @@ def _print_table(r: dict[str, Any]) -> None:
               f"{r['telemetry_seconds'] / t['phases']:g} s windows):")
         print(format_report(r["telemetry"]))
         print(telemetry_verdict(r["telemetry"]))
-    from mmctl.runtime.daemon import PHASES
+    from mmctl.runtime.driver import PHASES
 
     parts = [f"{name} {r['loop'].get(name + '_p50_us', 0):.0f}/"
              f"{r['loop'].get(name + '_p99_us', 0):.0f}" for name in ("step", *PHASES)]

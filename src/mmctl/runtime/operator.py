@@ -1,0 +1,261 @@
+"""The operator's side of the daemon: the control socket's commands (a table of
+handlers), enable with its arm reconnect, disable, mode, switch, tare, and running a
+command on the loop thread (:meth:`OperatorCommands._on_loop`).  A part of
+:class:`~mmctl.runtime.daemon.Daemon`, which composes it with the lifecycle and the
+cycle driver (:mod:`mmctl.runtime.driver`)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from typing import TYPE_CHECKING, Any, cast
+
+import structlog
+
+from mmctl.errors import FaultCause, IpcError, MmctlError, SafetyFault, TransportError
+from mmctl.runtime.ipc import Peer
+
+log = structlog.get_logger("mmctl.daemon")
+
+_BASE_CAUSES = frozenset({FaultCause.DRIVE_FAULT, FaultCause.DRIVE_HEARTBEAT,
+                          FaultCause.BASE_LINK})
+_ARM_RECONNECT_CAUSES = frozenset({FaultCause.ARM_DISCONNECTED, FaultCause.ARM_STALE,
+                                   FaultCause.ARM_NOT_PLAYING})
+
+
+if TYPE_CHECKING:
+    from mmctl.runtime.parts import DaemonParts as _Parts
+else:
+    _Parts = object
+
+
+class OperatorCommands(_Parts):
+    """The operator's commands (see the module docstring)."""
+
+    def submit(self, fn: Callable[[], Any]) -> Future[Any]:
+        """Run ``fn`` on the loop thread at the start of the next cycle."""
+        fut: Future[Any] = Future()
+        self._commands.put((fn, fut))
+        return fut
+
+    def call(self, cmd: str, **args: Any) -> Any:
+        """Run one control command (same names as the socket's) and wait for its result."""
+        return self.handle({"cmd": cmd, **args}, None)
+
+    def _on_loop(self, fn: Callable[[], Any], timeout: float | None = None) -> Any:
+        """Run ``fn`` on the loop thread and wait; without a loop thread (tests stepping
+        the daemon with :meth:`step_once`) run it right here.
+
+        A command the loop has not started within ``timeout`` [s] (default
+        ``daemon.command_timeout``) is cancelled, so a command reported as failed never
+        takes effect later; one it has started is waited for (the loop runs nothing
+        that blocks: an arm reconnect runs on the caller's thread) and reported as it
+        ended.
+        """
+        if not self.loop.running:
+            if self.loop.error is not None or self._stop_requested.is_set():
+                raise IpcError("the control loop is not running")
+            return fn()
+        fut = self.submit(fn)
+        try:
+            return fut.result(self.cfg.daemon.command_timeout if timeout is None else timeout)
+        except FutureTimeout:
+            if fut.cancel():
+                raise IpcError("the control loop did not take the command in time "
+                               "(not applied)") from None
+        return fut.result()  # started: ends within its cycle
+
+    def handle(self, req: Mapping[str, Any], peer: Peer | None) -> Any:
+        """Dispatch one control-socket request (see :mod:`mmctl.runtime.ipc`)."""
+        cmd = req["cmd"]
+        handler = self._handlers.get(cmd)
+        if handler is None:
+            raise MmctlError(f"unknown command {cmd!r}; known: {', '.join(self._handlers)}")
+        return handler(req)
+
+    def _command_table(self) -> dict[str, Callable[[Mapping[str, Any]], Any]]:
+        """The control socket's commands: name -> handler of the request."""
+        return {
+            "status": lambda req: self.status(),
+            "enable": lambda req: self._enable_request(
+                _budget(req, self.cfg.daemon.command_timeout)),
+            "disable": lambda req: self._on_loop(self._disable),
+            "mode": self._cmd_mode,
+            "switch": self._cmd_switch,
+            "tare": self._cmd_tare,
+            "stop": self._cmd_stop,
+            "trial": self._cmd_trial,
+        }
+
+    def _cmd_mode(self, req: Mapping[str, Any]) -> Any:
+        mode = _arg(req, "mode", str)
+        return self._on_loop(lambda: self._set_mode(mode))
+
+    def _cmd_switch(self, req: Mapping[str, Any]) -> Any:
+        which = _arg(req, "to", str)
+        return self._on_loop(lambda: self._set_switch(which))
+
+    def _cmd_tare(self, req: Mapping[str, Any]) -> Any:
+        self._hands_off_for_tare()
+        return self._on_loop(self._tare)
+
+    def _cmd_stop(self, req: Mapping[str, Any]) -> Any:
+        self.request_stop("mmctl stop")
+        return {"stopping": True}
+
+    def _cmd_trial(self, req: Mapping[str, Any]) -> Any:
+        if self.telemetry is None:
+            raise MmctlError("'trial' needs the telemetry service")
+        return self.telemetry.command(req, self._on_loop, self)
+
+    def _hands_off_for_tare(self) -> None:
+        """Simulated robot: the person lets go of the handle while the sensor is tared
+        (an operator does; the tare must not absorb a push)."""
+        if self.sim is None or self.safety.armed:
+            return
+        w = self.cfg.sensor.wrench
+        seconds = 0.3 + 2.0 * w.tare_samples / self.cfg.loop.rate_hz
+        try:
+            self.sim.hold(seconds)
+        except MmctlError as exc:
+            log.warning("sim_hold_failed", error=str(exc))
+
+    def _enable_request(self, budget: float) -> dict[str, Any]:
+        """Operator re-arm within ``budget`` [s]: the checks and the arming run on the
+        loop thread (:meth:`_enable`); when the arm's link or program is lost, the arm
+        reconnects first on *this* thread (it takes seconds), while the loop keeps its
+        period and leaves the arm alone.  An enable reported as failed (refused, the
+        reconnect failed, the budget ran out) never takes effect later."""
+        deadline = time.monotonic() + budget
+        if self._on_loop(self._begin_enable, budget):
+            with self._arm_reconnect:
+                try:
+                    self._reconnect_arm()
+                finally:
+                    self._arm_busy = False
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise MmctlError(f"refused to enable: the arm's reconnect took longer than "
+                             f"{budget:g} s (daemon.command_timeout or the client's timeout)")
+        return cast("dict[str, Any]", self._on_loop(self._enable, left))
+
+    def _begin_enable(self) -> bool:
+        """Loop thread: whether the enable must reconnect the arm first (then the loop
+        leaves the arm to the reconnect from now on)."""
+        if self.safety.armed or not (self.safety.active.keys() & _ARM_RECONNECT_CAUSES):
+            return False
+        self._arm_busy = True
+        return True
+
+    def _enable(self) -> dict[str, Any]:
+        """Operator re-arm (loop thread).
+
+        Conditions other than the base's must be gone (else EnableRefused); the arm is
+        judged on a fresh read.  The base latches its faults until ``enable()`` resets
+        them, so it is enabled first and its health re-checked: a drive still faulty or
+        silent refuses the enable.
+        """
+        if self.safety.armed:
+            return self.status()
+        if self.cycles == 0:
+            raise MmctlError("refused to enable: no control cycle has run yet")
+        if self.core.taring:
+            raise MmctlError("refused to enable: a tare is in progress (the handle must not "
+                             "be touched until it ends)")
+        other = {c: d for c, d in self.safety.active.items()
+                 if c not in _BASE_CAUSES and not c.value.startswith("arm_")}
+        if self.loop.consecutive_misses == 0:
+            other.pop(FaultCause.LOOP_OVERRUN, None)  # on time again; counters reset below
+        try:
+            self.devices.arm.read_state()
+        except SafetyFault as exc:
+            other[exc.cause] = {"device": "arm", **exc.details}
+        except TransportError as exc:
+            other[FaultCause.ARM_DISCONNECTED] = {"device": "arm", "error": str(exc)}
+        if other:
+            self.safety.enable(other)  # raises EnableRefused naming them
+        try:
+            self.devices.base.enable()
+            self.devices.base.check()
+        except SafetyFault as exc:
+            self.devices.stop(self.cfg.arm.stop_deceleration, wait=False)
+            self.safety.enable({exc.cause: {"device": "base", **exc.details}})  # refused
+        except (MmctlError, OSError) as exc:
+            self.devices.stop(self.cfg.arm.stop_deceleration, wait=False)
+            try:
+                self.devices.base.check()  # name the cause if the base knows it
+            except SafetyFault as fault:
+                self.safety.enable({fault.cause: {"device": "base", "error": str(exc),
+                                                  **fault.details}})  # refused
+            except (MmctlError, OSError):
+                pass
+            raise MmctlError(f"refused to enable: the base did not enable ({exc})") from None
+        self.safety.enable({})
+        self.core.reset()
+        self.loop.reset_misses()
+        self._update_status()
+        return self.status()
+
+    def _reconnect_arm(self) -> None:
+        """Enable after a lost link / stopped program (off the loop thread, the loop
+        leaving the arm alone): reconnect, which re-uploads the control script (~1-2 s;
+        ur_rtde's constructors and destructors hold the GIL for parts of it)."""
+        log.info("arm_reconnecting",
+                 causes=sorted(c.value for c in self.safety.active if c.value.startswith("arm_")))
+        try:
+            self.devices.arm.reconnect()
+        except (MmctlError, OSError) as exc:
+            log.warning("arm_reconnect_failed", error=str(exc))
+            raise MmctlError(f"refused to enable: the arm did not reconnect ({exc})") from None
+        log.info("arm_reconnected")
+
+    def _disable(self) -> dict[str, Any]:
+        if self.safety.disable():
+            self._send_stop()
+        self._update_status()
+        return self.status()
+
+    def _set_mode(self, mode: str) -> dict[str, Any]:
+        old = self.core.mode
+        self.core.set_mode(mode)
+        log.info("mode", old=old, new=self.core.mode)
+        self._update_status()
+        return self.status()
+
+    def _set_switch(self, which: str) -> dict[str, Any]:
+        if self.core.mode != "switch":
+            raise MmctlError(f"`switch` needs mode 'switch' (current mode: {self.core.mode}); "
+                             "run `mmctl mode switch` first")
+        old = self.core.switch
+        self.core.set_switch(which)
+        log.info("switch", old=old, new=self.core.switch)
+        self._update_status()
+        return self.status()
+
+    def _tare(self) -> dict[str, Any]:
+        if self.safety.armed:
+            raise MmctlError("refusing to tare while armed: `mmctl disable` first "
+                             "(a tare must not absorb the operator's push)")
+        self.core.start_tare()
+        return {"taring": True, "samples": self.cfg.sensor.wrench.tare_samples}
+
+
+def _budget(req: Mapping[str, Any], default: float) -> float:
+    """How long [s] a command may take: ``default``, shortened to 80 % of the client's
+    own ``timeout_s`` when it sends one (the rest is its margin for the reply), so a
+    client never reports a failure that the daemon then carries out."""
+    client = req.get("timeout_s")
+    if isinstance(client, (int, float)) and not isinstance(client, bool) \
+            and math.isfinite(client) and client > 0:
+        return min(default, 0.8 * float(client))
+    return default
+
+
+def _arg(req: Mapping[str, Any], key: str, typ: type) -> Any:
+    val = req.get(key)
+    if not isinstance(val, typ):
+        raise MmctlError(f"request {req.get('cmd')!r} needs {key!r} ({typ.__name__})")
+    return val

@@ -1,0 +1,72 @@
+"""What the daemon's parts (:mod:`mmctl.runtime.operator`, :mod:`mmctl.runtime.driver`)
+may use of one another: the :class:`~mmctl.runtime.daemon.Daemon`'s attributes and the
+few methods one part calls on another.  For the type checker only: imported under
+``TYPE_CHECKING``, never at run time (so no stub here can hide a real method)."""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmctl.config import Config
+from mmctl.errors import FaultCause
+from mmctl.runtime.core import ControlCore, CycleResult
+from mmctl.runtime.daemon import SampleHook
+from mmctl.runtime.devices import Devices
+from mmctl.runtime.logging import RateLimiter
+from mmctl.runtime.loop import CycleLoop
+from mmctl.runtime.notify import Notifier
+from mmctl.runtime.safety import SafetyMonitor
+from mmctl.runtime.sim_link import SimLink
+from mmctl.runtime.timing import TimingRing
+from mmctl.telemetry.service import TelemetryService
+
+
+class DaemonParts:
+    """The daemon's state and cross-part methods, as the parts see them."""
+
+    cfg: Config
+    devices: Devices
+    core: ControlCore
+    safety: SafetyMonitor
+    notifier: Notifier
+    sim: SimLink | None
+    telemetry: TelemetryService | None
+    ring: TimingRing
+    loop: CycleLoop
+    period: float
+    cycles: int
+    commands_sent: dict[str, int]
+    step_ns: NDArray[np.int64]
+    hook_ns: NDArray[np.int64]
+    phase_ns: NDArray[np.int64]
+    sample_hook: SampleHook | None
+    last: CycleResult | None
+    last_conditions: dict[FaultCause, dict[str, Any]]
+    _t0_ns: int
+    _limiter: RateLimiter
+    _arm_busy: bool
+    _arm_reconnect: threading.Lock
+    _commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]]
+    _stop_requested: threading.Event
+    _healthy_cycle: threading.Event
+    _handlers: dict[str, Callable[[Mapping[str, Any]], Any]]
+    _sensor_request: Callable[[], None] | None
+    _request_at_start: bool
+    _twist_sent: tuple[float, float, float] | None
+    _button_was: bool
+
+    def status(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def _update_status(self) -> None: ...
+
+    def request_stop(self, reason: str = "requested") -> None: ...
+
+    def _send_stop(self) -> None: ...
