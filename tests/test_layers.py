@@ -55,10 +55,13 @@ def test_the_daemon_loads_no_optional_extra() -> None:
         "from mmctl.config import default_config\n"
         "from mmctl.runtime.factory import create_daemon\n"
         "create_daemon(default_config(), None, attach_sim=False)\n"
-        "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))\n")
+        "print(json.dumps([sorted({m.split('.')[0] for m in sys.modules}),\n"
+        "                  'mmctl.runtime.parts' in sys.modules]))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=120).stdout
-    loaded = set(json.loads(out))
+    names, parts_loaded = json.loads(out)
+    loaded = set(names)
+    assert parts_loaded is False  # the type checker's view of the daemon's parts only
     optional = {m for mods in EXTRAS.values() for m in mods}
     assert loaded & optional == set()
     assert {"numpy", "pinocchio", "can", "canopen"} <= loaded  # the check sees imports
