@@ -40,6 +40,7 @@ from mmctl.control.energy import Energy, kinetic_energy
 from mmctl.control.limits import Limits
 from mmctl.control.strategies import IdkStrategy, Problem, make_strategies
 from mmctl.errors import FaultCause, MmctlError
+from mmctl.model.planar import point_to_world
 from mmctl.model.robot import RobotModel, planar_pose
 
 Vec = NDArray[np.float64]
@@ -266,9 +267,7 @@ class Controller:
 
         e_meas = kinetic_energy(kin.M_a, kin.M_b, qd_meas)
         e_cmd = kinetic_energy(kin.M_a, kin.M_b, qdot)
-        c, s = math.cos(q[8]), math.sin(q[8])
-        pd = self.p_des_base
-        p_des = np.array([q[6] + c * pd[0] - s * pd[1], q[7] + s * pd[0] + c * pd[1], pd[2]])
+        p_des = point_to_world(q[6], q[7], q[8], self.p_des_base)
         v_d.setflags(write=False)
         qdot.setflags(write=False)
         new = ControllerState(v_d, qdot, state.mode, state.switch, weights,  # type: ignore[arg-type]

@@ -37,6 +37,7 @@ import structlog
 
 from mmctl.config import Config
 from mmctl.errors import MmctlError
+from mmctl.model.planar import base_to_world, rot_z, world_to_base
 from mmctl.types import Vec
 
 log = structlog.get_logger("mmctl.sim")
@@ -241,9 +242,7 @@ class SimWorld:
         q = np.concatenate((arm.q, [x, y, yaw]))
         qd = np.concatenate((arm.qd, twist))
         kin = self.model.update(q, inertia=False)
-        c, s = math.cos(yaw), math.sin(yaw)
-        v_b = kin.J[:3] @ qd
-        v_w = np.array([c * v_b[0] - s * v_b[1], s * v_b[0] + c * v_b[1], v_b[2]])
+        v_w = base_to_world(kin.J[:3] @ qd, yaw)
         return q, qd, kin.p, v_w, kin.R_base
 
     def _human_force(self, t: float, q: Vec, p: Vec, v: Vec) -> Vec:
@@ -262,10 +261,8 @@ class SimWorld:
         from mmctl.study.users import draw_user
 
         kin = self.model.update(q, inertia=False)
-        c, s = math.cos(q[8]), math.sin(q[8])
-        rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         mount = self.cfg.robot.arm_mount
-        task = peg_in_hole_task(kin.p, rz @ kin.R_base[:, 2], float(q[8]), STUDY_HOLES,
+        task = peg_in_hole_task(kin.p, rot_z(q[8]) @ kin.R_base[:, 2], float(q[8]), STUDY_HOLES,
                                 arm_mount_xy=(float(mount[0]), float(mount[1])))
         return SimulatedHuman(draw_user(self.cfg.sim.human_seed, 0), task, loop=True)
 
@@ -289,10 +286,7 @@ class SimWorld:
         elif self.human_on:
             force = self._human_force(t, q, p, v)
         if "wrench_over_limit" in faults:  # along the tool axis: above the force limit,
-            c, s = math.cos(q[8]), math.sin(q[8])  # not saturating the torque gauges
-            axis_b = r_bs[:, 2]
-            force = 200.0 * np.array([c * axis_b[0] - s * axis_b[1],
-                                      s * axis_b[0] + c * axis_b[1], axis_b[2]])
+            force = 200.0 * base_to_world(r_bs[:, 2], q[8])  # (no torque: no saturation)
         self._press(t < self._press_until)
         self._wrench = self._sensor_wrench(q, r_bs, force)
         self._wrench_step = step
@@ -312,11 +306,7 @@ class SimWorld:
 
     def _sensor_wrench(self, q: Vec, r_bs: Vec, force_world: Vec) -> Vec:
         """World force at the handle -> what the sensor measures (sensor frame)."""
-        yaw = q[8]
-        c, s = math.cos(yaw), math.sin(yaw)
-        f_b = np.array([c * force_world[0] + s * force_world[1],
-                        -s * force_world[0] + c * force_world[1], force_world[2]])
-        f_s = r_bs.T @ f_b
+        f_s = r_bs.T @ world_to_base(force_world, q[8])
         g_s = r_bs.T @ np.array([0.0, 0.0, -self._mass * G0])
         out = np.empty(6)
         out[:3] = f_s + g_s

@@ -32,6 +32,7 @@ import numpy as np
 
 from mmctl.control.metrics import trial_metrics
 from mmctl.model import RobotModel
+from mmctl.model.planar import base_to_world, rot_z, world_to_base
 from mmctl.sim.human import (
     HandleObservation,
     HumanAction,
@@ -69,9 +70,7 @@ def study_task(model: RobotModel, q0: np.ndarray, holes: tuple[tuple[float, floa
     """The peg-in-hole layout around the handle at ``q0``: holes in the plane through
     the handle orthogonal to the peg (the tool z axis), offsets along the base heading."""
     kin = model.update(q0, inertia=False)
-    c, s = math.cos(q0[8]), math.sin(q0[8])
-    rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    axis = rz @ kin.R_base[:, 2]
+    axis = rot_z(q0[8]) @ kin.R_base[:, 2]
     mount = model.cfg.arm_mount
     return peg_in_hole_task(kin.p, axis, float(q0[8]), holes,
                             arm_mount_xy=(float(mount[0]), float(mount[1])))
@@ -110,9 +109,8 @@ def run_execution(
     for k in range(n_max):
         q, qd = ps.q, ps.qd
         kin = model.update(q, inertia=False)
-        c, s = math.cos(q[8]), math.sin(q[8])
         v_b = kin.J[:3] @ qd
-        v_w = np.array([c * v_b[0] - s * v_b[1], s * v_b[0] + c * v_b[1], v_b[2]])
+        v_w = base_to_world(v_b, q[8])
         obs = HandleObservation(k * dt, kin.p, v_w, q[6:9])
         act = human.update(obs)
         if observe is not None:
@@ -121,9 +119,7 @@ def run_execution(
             state = controller.set_switch(state, act.switch_request)
             switches += 1
         fw = act.force
-        f_h[0] = c * fw[0] + s * fw[1]
-        f_h[1] = -s * fw[0] + c * fw[1]
-        f_h[2] = fw[2]
+        f_h[:3] = world_to_base(fw, q[8])
         state, out = controller.step(state, StepInputs(f_h.copy(), q, qd, dt))
         energy[k] = out.energy.total
         energy_base[k] = out.energy.base

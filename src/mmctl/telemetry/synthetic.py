@@ -12,6 +12,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from mmctl.model.planar import point_to_world
 from mmctl.telemetry.sample import TelemetrySample
 
 #: a comfortable arm pose [rad] (the default preferred configuration)
@@ -33,9 +34,7 @@ def synthetic_sample(k: int, period: float = 0.002, p_des: tuple[float, float, f
     e_arm = 0.5 * float(qd_arm @ qd_arm)
     e_base = 0.5 * 115.0 * float(twist[:2] @ twist[:2]) + 0.5 * 15.0 * twist[2] ** 2
     x, y, yaw = 0.1 * t, 0.02 * t, 0.05 * t
-    c, s = math.cos(yaw), math.sin(yaw)
-    p_des_w = np.array([x + c * p_des[0] - s * p_des[1], y + s * p_des[0] + c * p_des[1],
-                        p_des[2]])
+    p_des_w = point_to_world(x, y, yaw, p_des)
     p = p_des_w + np.array([0.05 * math.sin(0.3 * t), 0.02, -0.01])
     return TelemetrySample(
         cycle=k, t=t, q_a=q_a, base_pose=np.array([x, y, yaw]), f_h=f,
