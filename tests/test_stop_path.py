@@ -93,7 +93,7 @@ class Daemon:
         self.call("tare")
         self.wait_for(lambda: not self.call("status")["taring"], "the tare")
         self.sim("push", force=push)
-        for _attempt in range(5):
+        for _attempt in range(10):  # (a loaded machine may fault a few times first)
             self.wait_for(lambda: self._enabled(), "enable")
             p0 = self.handle()
             moved = self.wait_for(
@@ -101,7 +101,7 @@ class Daemon:
                          or self.call("status")["state"] != "armed"), "motion or a fault")
             if moved and self.call("status")["state"] == "armed":
                 return
-        raise AssertionError(f"no motion after 5 enables\n{self.log_text()[-3000:]}")
+        raise AssertionError(f"no motion after 10 enables\n{self.log_text()[-3000:]}")
 
     def _enabled(self) -> bool:
         try:
