@@ -251,7 +251,8 @@ def test_silent_drive_is_detected_within_the_heartbeat_timeout() -> None:
                   f"{hb.heartbeat_timeout * 1e3:.0f} ms)")
             assert fault.cause is FaultCause.DRIVE_HEARTBEAT
             assert fault.details["node_id"] == 3
-            assert fault.details["silent_for"] > hb.heartbeat_timeout
+            # (reported rounded: a detection just past the timeout may read as equal)
+            assert fault.details["silent_for"] >= hb.heartbeat_timeout
             # cannot be sooner than the timeout after the last heartbeat sent
             assert elapsed >= hb.heartbeat_timeout - hb.heartbeat_period
             assert [d.link for d in base.drive_status()][2] == "SILENT"
