@@ -13,7 +13,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -22,9 +21,9 @@ import numpy as np
 import pytest
 
 from mmctl.cli import main
-from mmctl.errors import IpcError
 from mmctl.runtime.ipc import ControlClient, request
 from simconfig import write_sim_config
+from waiting import wait_while_alive
 
 pytestmark = pytest.mark.timeout(600)
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,19 +56,7 @@ class Sim:
         return self.out.read_text(errors="replace")
 
     def wait_for(self, pred: Any, what: str, timeout: float = 180.0) -> Any:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                value = pred()
-            except (IpcError, OSError):
-                value = None
-            if value:
-                return value
-            if self.proc.poll() is not None:
-                raise AssertionError(f"mmctl sim exited ({self.proc.returncode}) while waiting "
-                                     f"for {what}:\n{self.log_text()[-4000:]}")
-            time.sleep(0.05)
-        raise AssertionError(f"timed out waiting for {what}\n{self.log_text()[-4000:]}")
+        return wait_while_alive(pred, what, self.proc, "mmctl sim", self.log_text, timeout)
 
     def kill(self) -> None:
         if self.proc.poll() is None:

@@ -27,6 +27,7 @@ import pytest
 from mmctl.errors import IpcError
 from mmctl.runtime.ipc import request
 from simconfig import write_sim_config
+from waiting import wait_while_alive
 
 pytestmark = pytest.mark.timeout(600)
 ROOT = Path(__file__).resolve().parents[1]
@@ -70,19 +71,7 @@ class Daemon:
                 if line.startswith("{")]
 
     def wait_for(self, pred: Any, what: str, timeout: float = 180.0) -> Any:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                value = pred()
-            except (IpcError, OSError):
-                value = None
-            if value:
-                return value
-            if self.proc.poll() is not None:
-                raise AssertionError(f"daemon exited ({self.proc.returncode}) while waiting "
-                                     f"for {what}:\n{self.log_text()[-4000:]}")
-            time.sleep(0.05)
-        raise AssertionError(f"timed out waiting for {what}\n{self.log_text()[-4000:]}")
+        return wait_while_alive(pred, what, self.proc, "daemon", self.log_text, timeout)
 
     def ready(self) -> None:
         self.wait_for(lambda: self.call("status")["cycles"] > 0, "the control socket")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import time
 from collections.abc import Callable
 from typing import Any
@@ -17,3 +18,24 @@ def wait_for(pred: Callable[[], Any], what: str, timeout: float = 60.0,
             return value
         time.sleep(interval)
     raise AssertionError(f"timed out waiting for {what}")
+
+
+def wait_while_alive(pred: Callable[[], Any], what: str, proc: subprocess.Popen[bytes],
+                     name: str, log_text: Callable[[], str], timeout: float = 180.0) -> Any:
+    """Poll ``pred()`` (an IpcError or OSError counts as not yet) while ``proc`` (the
+    ``name``d process) lives; fail with the tail of its log when it exits or on timeout."""
+    from mmctl.errors import IpcError
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            value = pred()
+        except (IpcError, OSError):
+            value = None
+        if value:
+            return value
+        if proc.poll() is not None:
+            raise AssertionError(f"{name} exited ({proc.returncode}) while waiting for "
+                                 f"{what}:\n{log_text()[-4000:]}")
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}\n{log_text()[-4000:]}")

@@ -324,19 +324,19 @@ class AlternatingWait:
     default timer slack; a switch takes effect at the next cycle."""
 
     def __init__(self, spin_margin_ns: int):
-        from mmctl.runtime.loop import PlainSleep, SpinWait
+        from mmctl.runtime import loop
 
         self.plain = False
         self._was = False
-        self._spin, self._sleep = SpinWait(spin_margin_ns), PlainSleep()
+        self._spin, self._sleep = loop.SpinWait(spin_margin_ns), loop.PlainSleep()
+        self._set_slack = loop.set_timer_slack  # (no import on the loop's every cycle)
+        self._slack = {True: loop.DEFAULT_TIMER_SLACK_NS, False: loop.LOOP_TIMER_SLACK_NS}
 
     def __call__(self, deadline: int) -> int:
-        from mmctl.runtime.loop import DEFAULT_TIMER_SLACK_NS, LOOP_TIMER_SLACK_NS, set_timer_slack
-
         plain = self.plain
         if plain is not self._was:  # on the loop thread: the slack is per thread
             self._was = plain
-            set_timer_slack(DEFAULT_TIMER_SLACK_NS if plain else LOOP_TIMER_SLACK_NS)
+            self._set_slack(self._slack[plain])
         return self._sleep(deadline) if plain else self._spin(deadline)
 
 

@@ -49,15 +49,20 @@ class Config:
     sim: SimConfig = sub(SimConfig)
     name: str = param("mmctl", doc="a label for logs and recordings")
 
-    def validate(self, path: str, source: str | None) -> None:
-        """The simulated robot serves CAN where the CAN sections look for it."""
-        if not self.sim.enabled:
-            return
+    def can_links(self) -> list[tuple[str, CanopenConfig | SensorCanConfig]]:
+        """The CAN sections in use, as (key, section): the base's CANopen bus (when
+        ``base.transport`` is canopen) and the sensor's (when ``sensor.transport`` is can)."""
         links: list[tuple[str, CanopenConfig | SensorCanConfig]] = (
             [("base.canopen", self.base.canopen)] if self.base.transport == "canopen" else [])
         if self.sensor.transport == "can":
             links.append(("sensor.can", self.sensor.can))
-        for key, link in links:
+        return links
+
+    def validate(self, path: str, source: str | None) -> None:
+        """The simulated robot serves CAN where the CAN sections look for it."""
+        if not self.sim.enabled:
+            return
+        for key, link in self.can_links():
             if link.interface == "socketcand":
                 if link.host != self.sim.host:
                     raise ConfigError(f"{key}.host", link.host, "must be sim.host "

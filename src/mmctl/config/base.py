@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+from mmctl.config import can
 from mmctl.config.schema import param, section, sub
 from mmctl.errors import ConfigError
 
@@ -25,14 +26,11 @@ class MecanumConfig:
 class CanopenConfig:
     """Four CiA 402 drives on a CAN bus."""
 
-    interface: str = param(
-        "virtual", min_len=1,
-        doc="python-can interface: 'socketcan' on the robot, 'socketcand' for the simulated "
-        "robot or a remote bus (host, port), 'virtual' in one process (unit tests)")
-    channel: str = param("mmctl-base", min_len=1, doc="python-can channel (socketcand: the bus it serves)")
-    host: str = param("127.0.0.2", min_len=1, doc="socketcand server address (socketcand only)")
-    port: int = param(29536, gt=0, le=65535, doc="socketcand server port (socketcand only)")
-    bitrate: int = param(1_000_000, gt=0, unit="bit/s")
+    interface: str = can.interface()
+    channel: str = can.channel("mmctl-base")
+    host: str = can.host()
+    port: int = can.port()
+    bitrate: int = can.bitrate()
     node_ids: tuple[int, ...] = param((1, 2, 3, 4), shape=(4,), ge=1, le=127, doc="FL, FR, BL, BR")
     heartbeat_timeout: float = param(0.1, unit="s", gt=0.0, doc="silent drive -> fault")
     heartbeat_period: float = param(0.02, unit="s", gt=0.0, doc="our producer heartbeat")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+from mmctl.config import can
 from mmctl.config.schema import param, section, sub
 
 
@@ -11,14 +12,11 @@ from mmctl.config.schema import param, section, sub
 class SensorCanConfig:
     """ATI Net F/T CAN layout on any python-can interface."""
 
-    interface: str = param(
-        "virtual", min_len=1,
-        doc="python-can interface: 'socketcan' on the robot, 'socketcand' for the simulated "
-        "robot or a remote bus (host, port), 'virtual' in one process (unit tests)")
-    channel: str = param("mmctl-sensor", min_len=1, doc="python-can channel (socketcand: the bus it serves)")
-    host: str = param("127.0.0.2", min_len=1, doc="socketcand server address (socketcand only)")
-    port: int = param(29536, gt=0, le=65535, doc="socketcand server port (socketcand only)")
-    bitrate: int = param(1_000_000, gt=0, unit="bit/s")
+    interface: str = can.interface()
+    channel: str = can.channel("mmctl-sensor")
+    host: str = can.host()
+    port: int = can.port()
+    bitrate: int = can.bitrate()
     base_id: int = param(0x20, ge=0, le=0x7F, doc="CAN base id; frame id = (base_id << 4) | opcode")
     timeout: float = param(0.005, unit="s", gt=0.0, doc="reply timeout of one read")
     connect_timeout: float = param(

@@ -22,10 +22,7 @@ from mmctl.runtime.notify import Notifier
 
 def in_process_sim(cfg: Config) -> bool:
     """True when a CAN link of the simulated robot is the in-process ``virtual`` bus."""
-    links: list[Any] = [cfg.base.canopen] if cfg.base.transport == "canopen" else []
-    if cfg.sensor.transport == "can":
-        links.append(cfg.sensor.can)
-    return any(link.interface == "virtual" for link in links)
+    return any(link.interface == "virtual" for _key, link in cfg.can_links())
 
 
 def create_daemon(cfg: Config, socket_path: Path | None, *, sim_log: Path | None = None,

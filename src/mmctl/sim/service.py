@@ -85,20 +85,25 @@ class SimService:
         return handler(req)
 
     def _command_table(self) -> dict[str, Callable[[Mapping[str, Any]], Any]]:
-        w = self.world
         return {
-            "status": lambda req: {**w.status(), "pid": os.getpid(), "config": self.cfg.name,
-                                   "person": self._person(), "faults_known": FAULTS},
+            "status": lambda req: {**self._then_status(), "pid": os.getpid(),
+                                   "config": self.cfg.name, "faults_known": FAULTS},
             "push": self._cmd_push,
             "person": self._cmd_person,
-            "press": lambda req: self._then_status(w.command({"press": True})),
+            "press": self._cmd_press,
             "fault": self._cmd_fault,
             "log": self._log,
             "stop": self._cmd_stop,
         }
 
-    def _then_status(self, _done: object = None) -> dict[str, Any]:
-        return {**self.world.status(), "person": self._person()}
+    def _then_status(self) -> dict[str, Any]:
+        """The world's status (taken once) and what the person does."""
+        st = self.world.status()
+        return {**st, "person": _person(st)}
+
+    def _cmd_press(self, req: Mapping[str, Any]) -> Any:
+        self.world.press()
+        return self._then_status()
 
     def _cmd_push(self, req: Mapping[str, Any]) -> Any:
         self.world.set_push(req.get("force"), req.get("seconds"))
@@ -127,14 +132,6 @@ class SimService:
         self.request_stop("requested")
         return {"stopping": True}
 
-    def _person(self) -> str:
-        st = self.world.status()
-        if st["holding"]:
-            return "holding"
-        if st["push"] is not None:
-            return "push"
-        return "on" if st["human"] else "off"
-
     def _log(self, req: Mapping[str, Any]) -> dict[str, Any]:
         """The fakes' logs from ``since`` on (CLOCK_MONOTONIC [s], ``time.monotonic()``
         of any process here): UR commands as [seq, kind, received, qd], per drive
@@ -152,3 +149,12 @@ class SimService:
             str(nid): [e for e in w.drives.command_log(nid) if e[0] >= since] for nid in ids}
         return {"ur": ur, "drives": drives,
                 "steps": [s for s in w.step_samples if s[1] >= since]}
+
+
+def _person(st: Mapping[str, Any]) -> str:
+    """holding / push / on / off, from the world's status."""
+    if st["holding"]:
+        return "holding"
+    if st["push"] is not None:
+        return "push"
+    return "on" if st["human"] else "off"

@@ -19,7 +19,7 @@ button: UR digital input ``daemon.switch_input`` of the fake controller (as wire
 the robot), or :attr:`SimWorld.button` when no input is configured.  While the daemon
 tares, the person lets go (:meth:`SimWorld.hold`), as a real operator would.
 
-:meth:`SimWorld.command` (the simulation's control socket, `mmctl sim ...`) overrides
+:mod:`mmctl.sim.service` (the simulation's control socket, `mmctl sim ...`) overrides
 the person with a constant push and injects faults into the fakes; see :data:`FAULTS`.
 """
 
@@ -166,13 +166,8 @@ class SimWorld:
 
     def _served_channels(self) -> list[str]:
         """The virtual channels the daemon reaches through socketcand."""
-        cfg = self.cfg
-        out = []
-        if cfg.sensor.transport == "can" and cfg.sensor.can.interface == "socketcand":
-            out.append(cfg.sensor.can.channel)
-        if cfg.base.canopen.interface == "socketcand":
-            out.append(cfg.base.canopen.channel)
-        return out
+        return [link.channel for _key, link in self.cfg.can_links()
+                if link.interface == "socketcand"]
 
     def start_human(self) -> None:
         """Let the simulated person start the task (if ``sim.human``)."""
@@ -314,22 +309,10 @@ class SimWorld:
         measured: Vec = out + SENSOR_BIAS
         return measured
 
-    # -- control-socket commands ----------------------------------------------------------
-    def command(self, req: dict[str, Any]) -> dict[str, Any]:
-        """``{"cmd": "sim", ...}``: ``push`` [fx, fy, fz] (world frame [N]) with optional
-        ``duration`` [s] (``push: null`` ends it); ``human`` true/false; ``press``: the
-        handle button; ``fault``: a name of :data:`FAULTS` with ``on`` true/false."""
-        if "push" in req:
-            self.set_push(req["push"], req.get("duration"))
-        if "human" in req:
-            self.human_on = bool(req["human"]) and self.cfg.sim.human
-        if "hold" in req:
-            self.hold(float(req["hold"]))
-        if req.get("press"):
-            self._press_until = time.monotonic() + 0.1
-        if "fault" in req:
-            self.inject(str(req["fault"]), bool(req.get("on", True)))
-        return self.status()
+    # -- what the simulation's control socket asks (mmctl.sim.service) ------------------
+    def press(self) -> None:
+        """Press the handle button for 100 ms."""
+        self._press_until = time.monotonic() + 0.1
 
     def set_push(self, force: Any, duration: float | None = None) -> None:
         """A constant world-frame push [N] instead of the person (None ends it); in the
