@@ -18,7 +18,6 @@ from mmctl.sim.fake_ur import CommandKind, FakeURController, start_fake_ur
 from mmctl.sim.fake_ur import dashboard as dash
 from mmctl.sim.fake_ur.log import CommandLog
 from mmctl.sim.fake_ur.model import ControllerModel, RuntimeState
-from mmctl.sim.fake_ur.plant import JointPlant, Motion
 from mmctl.sim.fake_ur.program import (
     DONE,
     READY,
@@ -30,6 +29,7 @@ from mmctl.sim.fake_ur.program import (
 )
 from mmctl.sim.fake_ur.rtde_session import RtdeSession
 from mmctl.sim.fake_ur.rtde_types import HEADER, OUTPUT_TYPES, MsgType, frame
+from mmctl.sim.joints import JointPlant, Motion
 
 DT = 0.002
 Q0 = [0.1, -1.5, 1.2, -1.0, -1.57, 0.3]

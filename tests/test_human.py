@@ -44,12 +44,17 @@ def test_min_jerk_endpoints_and_peak() -> None:
 
 
 class PointRobot:
-    """A 3-D admittance point (M v' + B v = f), like the controller with perfect tracking."""
+    """A 3-D admittance point (M v' + B v = f), like the controller with perfect tracking;
+    with a dead band ``deadband`` [N] on the force, as the robot's wrench pipeline has."""
 
-    def __init__(self, x0: np.ndarray, m: float = 4.0, b: float = 75.0) -> None:
+    def __init__(self, x0: np.ndarray, m: float = 4.0, b: float = 75.0,
+                 deadband: float = 0.0) -> None:
         self.x, self.v, self.m, self.b = x0.copy(), np.zeros(3), m, b
+        self.deadband = deadband
 
     def step(self, f: np.ndarray, dt: float) -> None:
+        n = float(np.linalg.norm(f))
+        f = f * (max(n - self.deadband, 0.0) / n) if n > 0.0 else f
         a = np.exp(-self.b * dt / self.m)
         self.v = a * self.v + (1 - a) * f / self.b
         self.x = self.x + self.v * dt
@@ -113,6 +118,21 @@ def test_completes_the_task_with_plausible_forces() -> None:
     # dwell lasts dwell_time per hole
     n_dwell = sum(1 for ph in phases if ph is Phase.DWELL)
     assert n_dwell * DT == pytest.approx(len(task.holes) * p.dwell_time, abs=4 * DT)
+
+
+def test_a_person_pushes_through_the_robots_dead_band() -> None:
+    """K |gap| falls under a 2 N dead band 5.7 mm short of a goal (K = 350 N/m), outside
+    the 5 mm insertion tolerance: the person's effort build-up finishes the task anyway,
+    each correction pushing just past the dead band (no more than it takes)."""
+    p = HumanParams()
+    assert p.stiffness * p.insertion_tolerance < 2.0
+    human = SimulatedHuman(p, quick_task())
+    robot = PointRobot(START, deadband=2.0)
+    trace = run(human, robot, 60.0)
+    assert trace[-1][1].done, trace[-1][1].phase
+    assert human.finish_time is not None and human.finish_time < 30.0
+    settling = [np.linalg.norm(a.force) for _, a in trace if a.phase is Phase.DWELL]
+    assert max(settling) < 5.0
 
 
 def test_effort_regulation_slows_a_heavy_robot() -> None:

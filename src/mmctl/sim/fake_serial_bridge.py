@@ -6,7 +6,7 @@ bridge in a thread; :attr:`FakeSerialBridge.port` is the slave's path (/dev/pts/
 the real :class:`~mmctl.transports.base.serial_base.SerialBase` (or ``mmctl probe base
 --transport serial --port``).  The bridge answers every ENABLE / DISABLE / WHEEL_CMD /
 HEARTBEAT with a STATE, sends a STATE every ``report_period`` when idle, and drives a
-:class:`~mmctl.sim.fake_drives.WheelPlant` (acceleration limit, command watchdog).
+:class:`~mmctl.sim.wheels.WheelPlant` (acceleration limit, command watchdog).
 
 Fault injection (:meth:`FakeSerialBridge.inject`): ``"crc"`` (bad CRC), ``"truncate"``
 (frame cut short), ``"out_of_sequence"`` (an old sequence number carrying bogus
@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from mmctl.config import Config
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig
-from mmctl.sim.fake_drives import WheelPlant
+from mmctl.sim.wheels import WheelPlant
 from mmctl.transports.base import serial_protocol as sp
 
 if TYPE_CHECKING:

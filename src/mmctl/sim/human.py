@@ -13,6 +13,14 @@ react, *insert* along the hole axis (minimum-jerk, slower), settle, *dwell* (hol
 peg in), then *extract* back to the approach point.  The task ends when the dwell in
 the last hole ends: that instant is ``T_f``.
 
+Effort build-up: once the plan has arrived, a person whose handle stops short of the
+goal pushes harder until it gets there: the hand's equilibrium point moves on along the
+remaining gap, ``ẋ_e = (x_goal - x) / t_r`` with ``t_r`` the person's reaction time (one
+correction per reaction time), reset at every new move.  Without it a dead band in the
+robot's wrench pipeline (SPEC §1: the robot ignores pushes below ``deadband_force``)
+stops the handle where ``K |x_r - x|`` falls under the dead band, short of the
+insertion tolerance, and the person would wait forever.
+
 Effort regulation: a person does not pull arbitrarily hard on a handle that lags.  The
 minimum-jerk phase advances at ``g(||f||) / T`` with ``g = 1`` below the comfortable
 force ``f_comfort`` and falling linearly to 0 at ``f_max``; a robot that follows
@@ -293,6 +301,7 @@ class SimulatedHuman:
         self._ref_vel = np.zeros(3)
         self._arrived = False
         self._rate = 1.0
+        self._effort = np.zeros(3)  # effort build-up: equilibrium shift [m]
 
     @property
     def phase(self) -> Phase:
@@ -315,6 +324,7 @@ class SimulatedHuman:
         self._s = 0.0
         self._arrived = False
         self._ref_vel = np.zeros(3)
+        self._effort = np.zeros(3)
         if self._k >= len(self._segs) and self.loop:
             self._k = 0
         if self._k < len(self._segs):
@@ -353,6 +363,9 @@ class SimulatedHuman:
                 self._k += 1
                 self._enter(t)
                 continue
+            if self._rate > 0.0:  # not saturated: push harder toward the goal
+                rt = p.reaction_time
+                self._effort += gap * (min(1.0, dt / rt) if rt > 0.0 else 1.0)
             return
 
     def update(self, obs: HandleObservation) -> HumanAction:
@@ -371,7 +384,7 @@ class SimulatedHuman:
         self._t = t
         self._advance(t, dt, x, xd)
         err = self._ref - x
-        force = p.stiffness * err + p.damping * (self._ref_vel - xd)
+        force = p.stiffness * (err + self._effort) + p.damping * (self._ref_vel - xd)
         mag = math.sqrt(float(force @ force))
         if mag > p.f_max:
             force *= p.f_max / mag

@@ -12,9 +12,9 @@ may also run one next to an in-process daemon on the ``virtual`` interface.
 The person (:class:`~mmctl.sim.human.SimulatedHuman`, a peg-in-hole task repeated
 forever) observes the handle's true pose: the fake UR's joints, the fake drives' base
 pose and the model's FK.  The hand force it applies is turned into what the sensor
-measures: rotated into the sensor frame, its torque about the sensor origin, plus the
-handle's weight (so gravity compensation has something to do) and a constant sensor
-bias (so the tare has something to do).  The person's switch requests press the handle
+measures (:class:`~mmctl.sim.handle.HandleSensor`: the study's too): rotated into the
+sensor frame, its torque about the sensor origin, plus the handle's weight and a
+constant sensor bias.  The person's switch requests press the handle
 button: UR digital input ``daemon.switch_input`` of the fake controller (as wired on
 the robot), or :attr:`SimWorld.button` when no input is configured.  While the daemon
 tares, the person lets go (:meth:`SimWorld.hold`), as a real operator would.
@@ -37,14 +37,12 @@ import structlog
 
 from mmctl.config import Config
 from mmctl.errors import MmctlError
-from mmctl.model.planar import base_to_world, rot_z, world_to_base
+from mmctl.model.planar import base_to_world, rot_z
+from mmctl.sim.handle import HandleSensor
 from mmctl.types import Vec
 
 log = structlog.get_logger("mmctl.sim")
 
-G0 = 9.80665
-#: A constant offset the simulated sensor adds (what a tare removes) [N, N m].
-SENSOR_BIAS = np.array([1.2, -0.7, 2.5, 0.04, -0.03, 0.02])
 #: Injectable faults: name -> what it does to the fakes.
 FAULTS = {
     "sensor_silent": "the CAN sensor stops answering",
@@ -64,12 +62,6 @@ FAULTS = {
 #: Faults that are events, not states: "off" means nothing.
 _EVENTS = {"arm_not_playing", "drive_fault", "drive_reboot"}
 _HUMAN_PERIOD = 0.01  # [s] the person's update period (100 Hz: slow next to a hand)
-
-
-def _cross(a: Vec, b: Vec) -> Vec:
-    """a x b for 3-vectors (np.cross costs ~20 us of bookkeeping)."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
-                     a[0] * b[1] - a[1] * b[0]])
 
 
 class SimWorld:
@@ -133,9 +125,7 @@ class SimWorld:
 
         self.model = RobotModel(cfg.robot)
         self._odometry = odometry_matrix(cfg.base.mecanum)
-        self._lever = np.subtract(cfg.robot.tool_offset, cfg.robot.sensor_offset)
-        w = cfg.sensor.wrench
-        self._mass, self._com = w.handle_mass, np.asarray(w.handle_com, dtype=float)
+        self._handle_sensor = HandleSensor(cfg)
         self.ur = FakeURController(cfg.arm.host, q_init=self.q_init).start()
         self.drives = FakeDrives(cfg).start()
         self._update()  # the first wrench before the sensor answers anything
@@ -283,7 +273,7 @@ class SimWorld:
         if "wrench_over_limit" in faults:  # along the tool axis: above the force limit,
             force = 200.0 * base_to_world(r_bs[:, 2], q[8])  # (no torque: no saturation)
         self._press(t < self._press_until)
-        self._wrench = self._sensor_wrench(q, r_bs, force)
+        self._wrench = self._handle_sensor.measure(force, float(q[8]), r_bs)
         self._wrench_step = step
         self._last_force = force
         self._handle = p
@@ -298,16 +288,6 @@ class SimWorld:
                 self.ur.set_digital_input(self._button_input, on)
             except MmctlError as exc:  # the controller is down (a fault test): no button
                 log.warning("sim_button_failed", error=str(exc))
-
-    def _sensor_wrench(self, q: Vec, r_bs: Vec, force_world: Vec) -> Vec:
-        """World force at the handle -> what the sensor measures (sensor frame)."""
-        f_s = r_bs.T @ world_to_base(force_world, q[8])
-        g_s = r_bs.T @ np.array([0.0, 0.0, -self._mass * G0])
-        out = np.empty(6)
-        out[:3] = f_s + g_s
-        out[3:] = _cross(self._lever, f_s) + _cross(self._com, g_s)
-        measured: Vec = out + SENSOR_BIAS
-        return measured
 
     # -- what the simulation's control socket asks (mmctl.sim.service) ------------------
     def press(self) -> None:

@@ -9,7 +9,6 @@ from mmctl.config import Config, default_config, load_config
 from mmctl.config.control import STRATEGIES
 from mmctl.errors import ConfigError
 from mmctl.sim.human import QUICK_HOLES, STUDY_HOLES
-from mmctl.sim.plant import PlantParams
 from mmctl.study.results import PAPER_APPROACHES
 
 #: Users of ``--quick`` when ``--users`` is not given.
@@ -18,14 +17,13 @@ QUICK_USERS = 3
 
 @dataclass(frozen=True)
 class StudyConfig:
-    """One study: who, which approaches, how long, which plant.
+    """One study: who, which approaches, how long.
 
     users: number of simulated users; seed: population seed; strategies: control
     approaches, each an ``idk.strategy`` value; quick: the short two-hole task;
-    dt: control period [s] (the daemon's T); t_max: give up an execution after this
+    dt: control period [s] (the daemon's T: the control config's ``loop.rate_hz`` is
+    set to 1/dt); t_max: give up an execution after this
     long [s]; record_every: keep every n-th sample of the time series;
-    plant: the simulated robot's lags and acceleration limits (None: the
-    acceleration limits of the control config and the default lags);
     config_path: control configuration YAML (None: the defaults).
     """
 
@@ -36,7 +34,6 @@ class StudyConfig:
     dt: float = 0.002
     t_max: float = 120.0
     record_every: int = 5
-    plant: PlantParams | None = None
     config_path: str | None = None
     holes: tuple[tuple[float, float], ...] = field(default=STUDY_HOLES)
 
@@ -71,10 +68,7 @@ class StudyConfig:
 
     def control_config(self, strategy: str) -> Config:
         """The control configuration of one execution: the file (or defaults) with
-        ``idk.strategy`` set to ``strategy``."""
+        ``idk.strategy`` set to ``strategy`` and ``loop.rate_hz`` to 1/dt."""
         cfg = load_config(Path(self.config_path)) if self.config_path else default_config()
-        return replace(cfg, idk=replace(cfg.idk, strategy=strategy))  # type: ignore[type-var]
-
-    def plant_params(self, cfg: Config) -> PlantParams:
-        """The plant of this study for the control configuration ``cfg``."""
-        return self.plant if self.plant is not None else PlantParams.from_config(cfg)
+        return replace(cfg, idk=replace(cfg.idk, strategy=strategy),  # type: ignore[type-var]
+                       loop=replace(cfg.loop, rate_hz=1.0 / self.dt))  # type: ignore[type-var]

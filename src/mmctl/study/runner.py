@@ -1,17 +1,24 @@
-"""Run the study: every user with every approach through the daemon's control step().
+"""Run the study: every user with every approach through the robot's control cycle.
 
-One execution (user u, approach s), at t = kT (T = ``study.dt``), k = 0, 1, ...:
+Each execution (user u, approach s) runs :meth:`mmctl.control.cycle.CycleChain.cycle`,
+the cycle the daemon's loop runs, on the simulated robot's plant
+(:class:`mmctl.sim.plant.Plant`, the fakes' joints and wheels) in simulated time.
+First, hands off the handle, the tare the operator runs before enabling
+(``sensor.wrench.tare_samples`` cycles).  Then, at t = kT (T = ``study.dt``), k = 0, 1, ...:
 
 1. the plant's actual ``q``, ``q̇`` give the handle's world position and velocity
    (Pinocchio FK and Jacobian of :class:`mmctl.model.RobotModel`);
 2. the simulated human (:mod:`mmctl.sim.human`) returns a world-frame force and maybe
    a switch request; the request reaches the controller only in the switch approach;
-3. the force, rotated into the base frame, is ``f_h = (f, 0, 0, 0)`` (the task keeps
-   the orientation) and goes with ``q``, ``q̇`` into ``Controller.step``;
-4. the commanded arm velocities and base twist drive the plant for one period.
+3. the force becomes what the wrist sensor measures (:class:`mmctl.sim.handle.HandleSensor`:
+   sensor frame, its moment, the handle's weight, the sensor's bias) and, with the
+   arm's joints and the base's odometry, goes into the cycle: the robot's wrench
+   pipeline (tare, gravity compensation, limit, dead band, low-pass, axis mask), then
+   admittance, IDK, limits;
+4. the commanded speedJ and base twist drive the plant for one period.
 
 Sample k contributes E_K(kT) (the controller's *measured* energy: actual velocities),
-||f_h(kT)|| and ||v(kT)|| (actual end-effector linear speed); the metrics use
+||f_h(kT)|| (the force the person applies) and ||v(kT)|| (actual end-effector linear speed); the metrics use
 k = 1..N with ``N T = T_f``, the first cycle at which the human has finished the last
 insertion.  ``x_f = ||p(T_f) - p_des||`` with ``p`` the handle position relative to
 the base (FK of the arm joints) and ``p_des = FK(q_des)``.
@@ -30,9 +37,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from mmctl.config.control import Mode
+from mmctl.control.cycle import CycleChain, Readings
 from mmctl.control.metrics import trial_metrics
 from mmctl.model import RobotModel
-from mmctl.model.planar import base_to_world, rot_z, world_to_base
+from mmctl.model.planar import base_to_world, rot_z
+from mmctl.sim.handle import HandleSensor
 from mmctl.sim.human import (
     HandleObservation,
     HumanAction,
@@ -40,10 +50,11 @@ from mmctl.sim.human import (
     Task,
     peg_in_hole_task,
 )
-from mmctl.sim.plant import Plant, initial_state
+from mmctl.sim.plant import Plant
 from mmctl.study.config import StudyConfig
 from mmctl.study.results import Execution, Series
 from mmctl.study.users import draw_user
+from mmctl.types import ArmState, Odometry, Wrench
 
 Progress = Callable[[int, str], None]
 #: Called every cycle with what the human perceived and did (tests, debugging).
@@ -79,22 +90,29 @@ def study_task(model: RobotModel, q0: np.ndarray, holes: tuple[tuple[float, floa
 def run_execution(
     study: StudyConfig, user: int, strategy: str, observe: Observer | None = None
 ) -> tuple[Execution, float, int]:
-    """One user with one approach; returns the execution, its CPU time [s] and cycles."""
-    from mmctl.config.control import Mode
-    from mmctl.control.step import Controller, StepInputs
-
+    """One user with one approach; returns the execution, its CPU time [s] and cycles
+    (the tare's included)."""
     cpu0 = time.process_time()
     cfg = study.control_config(strategy)
-    model = RobotModel(cfg.robot)
-    controller = Controller(cfg, model)
-    state = controller.initial_state(strategy)
-    plant = Plant(study.plant_params(cfg))
+    chain = CycleChain(cfg)
+    model = chain.model
     q0 = start_configuration(cfg)
-    ps = initial_state(q0)
+    plant = Plant(cfg, q0)
+    sensor = HandleSensor(cfg)
     human = SimulatedHuman(draw_user(study.seed, user), study_task(model, q0, study.holes))
     p_des = model.update(np.concatenate((np.asarray(cfg.robot.q_des), np.zeros(3))),
                          inertia=False).p_base
-    dt = study.dt
+    dt = chain.dt
+    clock = _Clock(plant, sensor, model, dt)
+    # hands off the handle: the tare the operator runs before the first enable
+    state = chain.initial_state()
+    state = state._replace(wrench=chain.wrench.start_tare(state.wrench))
+    tare_cycles = 0
+    while state.wrench.tare_left > 0:
+        state, _out = chain.cycle(state, clock.readings(_NO_FORCE, active=False), clock.t)
+        plant.step(_Z6, _Z3, dt)
+        tare_cycles += 1
+    t0 = clock.t
     n_max = int(study.t_max / dt) + 1
     energy = np.zeros(n_max)
     energy_base = np.zeros(n_max)
@@ -102,41 +120,42 @@ def run_execution(
     speed = np.zeros(n_max)
     deviation = np.zeros(n_max)
     loco = np.zeros(n_max, dtype=np.int8)
-    f_h = np.zeros(6)
     switches = faults = 0
     k_done = n_max - 1
     p_final = p_des
     for k in range(n_max):
+        ps = plant.state()
         q, qd = ps.q, ps.qd
         kin = model.update(q, inertia=False)
         v_b = kin.J[:3] @ qd
         v_w = base_to_world(v_b, q[8])
-        obs = HandleObservation(k * dt, kin.p, v_w, q[6:9])
+        obs = HandleObservation(clock.t - t0, kin.p, v_w, q[6:9])
         act = human.update(obs)
         if observe is not None:
             observe(obs, act)
         if act.switch_request is not None:  # only the switch strategy uses the sub-mode
-            state = controller.set_switch(state, act.switch_request)
+            ctl = chain.controller.set_switch(state.controller, act.switch_request)
+            state = state._replace(controller=ctl)
             switches += 1
-        fw = act.force
-        f_h[:3] = world_to_base(fw, q[8])
-        state, out = controller.step(state, StepInputs(f_h.copy(), q, qd, dt))
+        fw = np.asarray(act.force, dtype=float)
+        state, out = chain.cycle(state, clock.readings(fw, active=True, q=q, qd=qd), clock.t)
         energy[k] = out.energy.total
         energy_base[k] = out.energy.base
         force[k] = math.sqrt(float(fw @ fw))
         speed[k] = math.sqrt(float(v_b @ v_b))
         dp = kin.p_base - p_des
         deviation[k] = math.sqrt(float(dp @ dp))
-        loco[k] = 1 if state.mode is Mode.SWITCH and state.target == "locomotion" else 0
+        ctl_state = state.controller
+        loco[k] = 1 if ctl_state.mode is Mode.SWITCH and ctl_state.target == "locomotion" else 0
         faults += 1 if out.fault is not None else 0
         if act.done:
             k_done = k
             p_final = kin.p_base
             break
-        ps = plant.step(ps, out.qdot_arm, out.base_twist, dt)
+        plant.step(out.qd_arm, out.twist, dt)
     completed = human.finish_time is not None
     if not completed:
-        p_final = model.update(ps.q, inertia=False).p_base
+        p_final = model.update(plant.state().q, inertia=False).p_base
     n = max(k_done, 1)
     sl = slice(1, n + 1)
     m = trial_metrics(dt, energy[sl], force[sl], speed[sl], p_final, p_des)
@@ -153,7 +172,37 @@ def run_execution(
     ex = Execution(user, strategy, m.E_mean, m.F_mean, m.v_mean, m.x_f, m.T_f,
                    float(energy_base[sl].mean()), float(force[sl].max()), switches, completed,
                    faults, series)
-    return ex, time.process_time() - cpu0, k_done + 1
+    return ex, time.process_time() - cpu0, tare_cycles + k_done + 1
+
+
+_Z3 = np.zeros(3)
+_Z6 = np.zeros(6)
+_NO_FORCE = np.zeros(3)
+
+
+class _Clock:
+    """The study's simulated time and the devices' readings at it: the plant's joints
+    and wheels as the arm and the odometry report them, and the sensor's reading of the
+    person's force (bias and handle weight included), one fresh sample per cycle."""
+
+    def __init__(self, plant: Plant, sensor: HandleSensor, model: RobotModel, dt: float):
+        self.plant, self.sensor, self.model, self.dt = plant, sensor, model, dt
+        self.t = 0.0
+        self.sequence = 0
+
+    def readings(self, force_world: np.ndarray, active: bool, q: np.ndarray | None = None,
+                 qd: np.ndarray | None = None) -> Readings:
+        """The readings of the cycle that starts now, then the clock moves one period."""
+        if q is None or qd is None:
+            q, qd = self.plant.state()
+        self.t += self.dt
+        self.sequence += 1
+        r_sensor = self.model.fk_base(q, "sensor").rotation
+        w = self.sensor.measure(force_world, float(q[8]), r_sensor)
+        t = self.t
+        return Readings(ArmState(q[:6], qd[:6], t, 2, 1),
+                        Wrench(w[:3], w[3:], t, self.sequence),
+                        Odometry(q[6], q[7], q[8], qd[6], qd[7], qd[8], t), self.dt, active)
 
 
 def _work(job: tuple[StudyConfig, int, str]) -> tuple[Execution, float, int]:

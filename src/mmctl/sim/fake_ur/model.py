@@ -17,7 +17,6 @@ from collections.abc import Callable, Sequence
 from enum import IntEnum
 
 from mmctl.sim.fake_ur.log import CommandKind, CommandLog
-from mmctl.sim.fake_ur.plant import JointPlant, Motion
 from mmctl.sim.fake_ur.program import (
     SPEED_STOP,
     SPEEDJ,
@@ -27,6 +26,7 @@ from mmctl.sim.fake_ur.program import (
     register_offset,
     watchdog_actions,
 )
+from mmctl.sim.joints import JointPlant, Motion
 
 PERIOD = 0.002
 """[s] controller period (500 Hz)."""

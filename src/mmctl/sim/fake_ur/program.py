@@ -12,7 +12,7 @@ Real-time commands (speedJ, servoJ, ...) are executed and answered "ready" on ev
 cycle; any other command is executed once, answered "done", and the script answers
 "ready" again after the client has cleared the command register (written 0).  Command
 255 ends the program.  This module reproduces that behaviour; the motion itself is
-:class:`~mmctl.sim.fake_ur.plant.JointPlant`'s.
+:class:`~mmctl.sim.joints.JointPlant`'s.
 
 Command 35 (ur_rtde's ``setWatchdog(min_frequency)``) runs the script's
 ``rtde_set_watchdog("input_int_register_<offset>", watchdog_min_frequency, "stop")``:
@@ -30,7 +30,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from mmctl.sim.fake_ur.plant import JointPlant
+from mmctl.sim.joints import JointPlant
 
 SPEEDJ = 9
 SPEED_STOP = 15

@@ -1,11 +1,13 @@
-"""The fake controller's arm: six joints that follow speedJ under an acceleration limit.
+"""The arm's joints: six joints that follow speedJ under an acceleration limit.
 
 URScript's ``speedj(qd, a)`` accelerates the joints towards ``qd`` with ``a`` the
 acceleration of the *leading* axis; the other joints are scaled so that all of them
 reach their target together (the velocity change keeps its direction).  ``stopj(a)``
 is the same towards zero.  Positions integrate the velocity with the trapezoidal rule.
 Pure Python (six joints): cheaper than numpy at this size, and the fake's process
-starts without importing numpy.
+starts without importing numpy.  Part of the simulated robot's one plant
+(:mod:`mmctl.sim.plant`): the fake UR controller runs it in real time, the study in
+simulated time.
 """
 
 from __future__ import annotations
