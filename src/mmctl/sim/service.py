@@ -141,12 +141,12 @@ class SimService:
         if not isinstance(since, (int, float)) or isinstance(since, bool):
             raise MmctlError(f"log needs 'since' (CLOCK_MONOTONIC seconds), got {since!r}")
         w = self.world
-        cmds = [] if w.ur is None else w.ur.commands()
+        cmds = w.ur.commands()
         ur = [[c.seq, c.kind.value, c.received, None if c.qd is None else list(c.qd)]
               for c in cmds if c.received is not None and c.received >= since]
         ids = self.cfg.base.canopen.node_ids
-        drives = {} if w.drives is None else {
-            str(nid): [e for e in w.drives.command_log(nid) if e[0] >= since] for nid in ids}
+        drives = {str(nid): [e for e in w.drives.command_log(nid) if e[0] >= since]
+                  for nid in ids}
         return {"ur": ur, "drives": drives,
                 "steps": [s for s in w.step_samples if s[1] >= since]}
 

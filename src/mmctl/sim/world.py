@@ -30,7 +30,7 @@ import math
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import structlog
@@ -40,6 +40,14 @@ from mmctl.errors import MmctlError
 from mmctl.model.planar import base_to_world, rot_z
 from mmctl.sim.handle import HandleSensor
 from mmctl.types import Vec
+
+if TYPE_CHECKING:
+    from mmctl.sim.fake_drives import FakeDrives
+    from mmctl.sim.fake_ft_can import FakeFtCanSensor
+    from mmctl.sim.fake_rdt import FakeRdtServer
+    from mmctl.sim.fake_ur import FakeURController
+    from mmctl.sim.human import SimulatedHuman
+    from mmctl.sim.socketcand import SocketcandServer
 
 log = structlog.get_logger("mmctl.sim")
 
@@ -82,12 +90,12 @@ class SimWorld:
         self.button = False
         self._button_input = cfg.daemon.switch_input
         self._button_sent = False
-        self.can_server: Any = None
+        self.can_server: SocketcandServer | None = None
         q0 = cfg.robot.q_init[:6] if cfg.robot.q_init is not None else cfg.robot.q_des
         self.q_init = np.asarray(q0, dtype=float)
-        self.ur: Any = None
-        self.drives: Any = None
-        self.sensor: Any = None
+        self._ur: FakeURController | None = None
+        self._drives: FakeDrives | None = None
+        self._sensor: FakeFtCanSensor | FakeRdtServer | None = None
         self.error: BaseException | None = None
         self.human_on = False
         self.push: Vec | None = None
@@ -99,7 +107,7 @@ class SimWorld:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
-        self._human: Any = None
+        self._human: SimulatedHuman | None = None
         self._request_was: str | None = None
         self._press_until = 0.0
         self._hold_until = 0.0
@@ -111,6 +119,27 @@ class SimWorld:
         self._wrench_step = 0
         self._sampled_step = 0
         self.step_samples: list[tuple[int, float]] = []
+
+    @property
+    def ur(self) -> FakeURController:
+        """The fake UR controller (after :meth:`start`)."""
+        if self._ur is None:
+            raise MmctlError("the simulated robot is not started")
+        return self._ur
+
+    @property
+    def drives(self) -> FakeDrives:
+        """The fake CiA 402 drives (after :meth:`start`)."""
+        if self._drives is None:
+            raise MmctlError("the simulated robot is not started")
+        return self._drives
+
+    @property
+    def sensor(self) -> FakeFtCanSensor | FakeRdtServer:
+        """The fake force/torque sensor (after :meth:`start`)."""
+        if self._sensor is None:
+            raise MmctlError("the simulated robot is not started")
+        return self._sensor
 
     # -- lifecycle ----------------------------------------------------------------------
     def start(self) -> None:
@@ -126,19 +155,19 @@ class SimWorld:
         self.model = RobotModel(cfg.robot)
         self._odometry = odometry_matrix(cfg.base.mecanum)
         self._handle_sensor = HandleSensor(cfg)
-        self.ur = FakeURController(cfg.arm.host, q_init=self.q_init).start()
-        self.drives = FakeDrives(cfg).start()
+        self._ur = FakeURController(cfg.arm.host, q_init=self.q_init).start()
+        self._drives = FakeDrives(cfg).start()
         self._update()  # the first wrench before the sensor answers anything
         if cfg.sensor.transport == "can":
             from mmctl.sim.fake_ft_can import FakeFtCanSensor
 
-            self.sensor = FakeFtCanSensor(self, channel=cfg.sensor.can.channel,
+            self._sensor = FakeFtCanSensor(self, channel=cfg.sensor.can.channel,
                                           base_id=cfg.sensor.can.base_id).start()
         else:
             from mmctl.sim.fake_rdt import FakeRdtServer
 
             r = cfg.sensor.rdt
-            self.sensor = FakeRdtServer(self, host=r.host, port=r.port,
+            self._sensor = FakeRdtServer(self, host=r.host, port=r.port,
                                         counts_per_force=r.counts_per_force,
                                         counts_per_torque=r.counts_per_torque).start()
         served = self._served_channels()
@@ -178,16 +207,16 @@ class SimWorld:
         if self._thread is not None:
             self._thread.join(5.0)
             self._thread = None
-        if self.log_dir is not None and self.ur is not None:
+        if self.log_dir is not None and self._ur is not None:
             self._write_logs(self.log_dir)
-        for name in ("can_server", "sensor", "drives", "ur"):
+        for name in ("can_server", "_sensor", "_drives", "_ur"):
             fake = getattr(self, name)
             if fake is None:
                 continue
             try:
                 fake.stop()
             except Exception as exc:  # noqa: BLE001 -- report, keep closing the others
-                log.error("sim_fake_stop_failed", fake=name, error=repr(exc))
+                log.error("sim_fake_stop_failed", fake=name.lstrip("_"), error=repr(exc))
             setattr(self, name, None)
 
     # -- what the fake sensor measures (WrenchSource) -------------------------------------
@@ -241,7 +270,7 @@ class SimWorld:
             self._press_until = t + 0.1  # a 100 ms press of the handle button
         return np.asarray(act.force, dtype=float)
 
-    def _make_human(self, q: Vec) -> Any:
+    def _make_human(self, q: Vec) -> SimulatedHuman:
         from mmctl.sim.human import STUDY_HOLES, SimulatedHuman, peg_in_hole_task
         from mmctl.study.users import draw_user
 
@@ -282,7 +311,7 @@ class SimWorld:
     def _press(self, on: bool) -> None:
         """The handle button: the fake UR's digital input (changes only), or ``button``."""
         self.button = on
-        if self._button_input >= 0 and on != self._button_sent and self.ur is not None:
+        if self._button_input >= 0 and on != self._button_sent and self._ur is not None:
             self._button_sent = on
             try:
                 self.ur.set_digital_input(self._button_input, on)
@@ -379,7 +408,7 @@ class SimWorld:
             "socketcand": None if self.can_server is None else {
                 "address": "{}:{}".format(*self.can_server.address),
                 "clients": self.can_server.clients()},
-            "ur_pid": None if self.ur is None else self.ur.pid,
+            "ur_pid": None if self._ur is None else self._ur.pid,
             # the fake controller's joints as its process publishes them right now
             # (shared memory: true also while the daemon's own threads were stopped)
             **self._arm_truth(),
@@ -389,7 +418,7 @@ class SimWorld:
         }
 
     def _arm_truth(self) -> dict[str, Any]:
-        if self.ur is None:
+        if self._ur is None:
             return {}
         arm = self.ur.state()
         return {"arm_q": [round(float(x), 6) for x in arm.q],
@@ -397,7 +426,7 @@ class SimWorld:
                 "arm_time": arm.controller_time}
 
     def _base_truth(self) -> dict[str, Any]:
-        if self.drives is None:
+        if self._drives is None:
             return {}
         return {"base_pose": [round(float(x), 6) for x in self.drives.pose()],
                 "wheel_velocities": [round(float(x), 4) for x in self.drives.wheel_velocities()]}
