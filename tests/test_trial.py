@@ -148,18 +148,21 @@ def test_service_brackets_trials_with_telemetry_off() -> None:
     def on_loop(fn):  # type: ignore[no-untyped-def]
         return fn()  # the daemon runs it on the loop thread
 
-    assert svc.command({"cmd": "trial", "action": "start"}, on_loop, daemon) == {
+    def install(hook):  # type: ignore[no-untyped-def]
+        daemon.sample_hook = hook  # the daemon's own hook slot
+
+    assert svc.command({"cmd": "trial", "action": "start"}, on_loop, install, core) == {
         "trial": 1, "started": True}
     assert daemon.sample_hook is not None
     for s in HAND:
         daemon.sample_hook(s, s.cycle, s.t, s.safety)
-    out = svc.command({"cmd": "trial", "action": "stop"}, on_loop, daemon)
+    out = svc.command({"cmd": "trial", "action": "stop"}, on_loop, install, core)
     assert daemon.sample_hook is None
     assert out["E"] == pytest.approx(3.0) and out["samples"] == 3 and out["trial"] == 1
-    status = svc.command({"cmd": "trial", "action": "status"}, on_loop, daemon)
+    status = svc.command({"cmd": "trial", "action": "status"}, on_loop, install, core)
     assert status["active"] is False and status["trials"][0]["x_f"] == pytest.approx(0.5)
     with pytest.raises(TrialError):
-        svc.command({"cmd": "trial", "action": "stop"}, on_loop, daemon)
+        svc.command({"cmd": "trial", "action": "stop"}, on_loop, install, core)
     with pytest.raises(Exception, match="expected start, stop or status"):
-        svc.command({"cmd": "trial", "action": "pause"}, on_loop, daemon)
+        svc.command({"cmd": "trial", "action": "pause"}, on_loop, install, core)
     svc.close()

@@ -26,6 +26,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from mmctl.config import Config
+from mmctl.errors import MmctlError
 from mmctl.runtime.loop import CycleLoop, Tick
 from mmctl.runtime.timing import TimingRing, TimingSnapshot, TimingStats, cycle_rows, summarize
 from mmctl.telemetry.rerun_sink import Destinations
@@ -322,6 +323,8 @@ def windows_on_daemon(daemon: Any, seconds: float, phases: int = 10,
     try:
         service.start(ring)
         pub = service.publisher
+        if pub is None or pub.ring is None:
+            raise MmctlError("the telemetry publisher did not start")
         hook = service.hook(daemon.core)
         time.sleep(1.0)  # start-up (the publisher's process, rerun's threads) is not steady state
         for i in range(n):

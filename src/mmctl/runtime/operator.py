@@ -27,6 +27,7 @@ _ARM_RECONNECT_CAUSES = frozenset({FaultCause.ARM_DISCONNECTED, FaultCause.ARM_S
 
 
 if TYPE_CHECKING:
+    from mmctl.runtime.daemon import SampleHook
     from mmctl.runtime.parts import DaemonParts as _Parts
 else:
     _Parts = object
@@ -109,7 +110,11 @@ class OperatorCommands(_Parts):
     def _cmd_trial(self, req: Mapping[str, Any]) -> Any:
         if self.telemetry is None:
             raise MmctlError("'trial' needs the telemetry service")
-        return self.telemetry.command(req, self._on_loop, self)
+        return self.telemetry.command(req, self._on_loop, self._install_hook, self.core)
+
+    def _install_hook(self, hook: SampleHook | None) -> None:
+        """The loop's telemetry hook (loop thread: a trial started or stopped)."""
+        self.sample_hook = hook
 
     def _hands_off_for_tare(self) -> None:
         """Simulated robot: the person lets go of the handle while the sensor is tared

@@ -13,23 +13,38 @@ except while a trial is bracketed, when it fills a scratch row for the tracker.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import structlog
 
 from mmctl import __version__
 from mmctl.config import Config
+from mmctl.control.cycle import CycleResult
 from mmctl.errors import MmctlError
 from mmctl.telemetry import ring
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.rerun_sink import Destinations
 from mmctl.telemetry.trial import TrialTracker
 
+if TYPE_CHECKING:
+    from mmctl.runtime.timing import TimingRing
+    from mmctl.telemetry.process_publisher import ProcessPublisher
+    from mmctl.telemetry.publisher import Publisher
+
 log = structlog.get_logger("mmctl.telemetry")
 
-Hook = Callable[[Any, int, float, str], None]
+#: The loop's per-cycle hook: ``hook(result, cycle, t, safety)``.
+Hook = Callable[[CycleResult, int, float, str], None]
+#: Runs a function on the loop thread and returns its result.
 OnLoop = Callable[[Callable[[], Any]], Any]
+
+
+class RowFiller(Protocol):
+    """Writes one cycle into a telemetry row (:meth:`mmctl.runtime.core.ControlCore.fill_row`)."""
+
+    def fill_row(self, r: CycleResult, cycle: int, t: float, safety: str,
+                 prev: tuple[float, ...], row: Any) -> None: ...
 
 
 def destinations_from(cfg: Config, viewer: bool = False, connect: str | None = None,
@@ -59,7 +74,7 @@ class TelemetryService:
     def __init__(self, cfg: Config, destinations: Destinations | None = None):
         self.cfg = cfg
         self.destinations = destinations if destinations is not None else Destinations()
-        self.publisher: Any = None
+        self.publisher: Publisher | ProcessPublisher | None = None
         self.tracker = TrialTracker(1.0 / cfg.loop.rate_hz, on_event=self._post)
 
     @property
@@ -67,7 +82,7 @@ class TelemetryService:
         """True when samples go to rerun."""
         return self.destinations.any
 
-    def start(self, ring: Any = None) -> None:
+    def start(self, ring: TimingRing | None = None) -> None:
         """Open the destinations and start the publisher (no-op when disabled).
 
         ring: the loop's TimingRing (loop timing in the rows; the thread publisher's
@@ -107,7 +122,7 @@ class TelemetryService:
         log.info("telemetry_started", viewer=self.destinations.viewer,
                  connect=self.destinations.connect, record=self.destinations.record)
 
-    def hook(self, core: Any) -> Hook | None:
+    def hook(self, core: RowFiller) -> Hook | None:
         """The per-cycle callable for the loop, ``hook(result, cycle, t, safety)``
         (None: no telemetry work at all).
 
@@ -124,15 +139,17 @@ class TelemetryService:
 
             unknown = ring.NO_TIMING.newest
 
-            def trial_only(r: Any, cycle: int, t: float, safety: str) -> None:
+            def trial_only(r: CycleResult, cycle: int, t: float, safety: str) -> None:
                 fill(r, cycle, t, safety, unknown, scratch)
                 observe(scratch)
 
             return trial_only
+        if pub.ring is None:
+            raise MmctlError("the telemetry publisher is not started")
         claim, commit = pub.ring.claim, pub.ring.commit
         timing = pub.ring.timing  # the loop's TimingRing, or NO_TIMING
 
-        def both(r: Any, cycle: int, t: float, safety: str) -> None:
+        def both(r: CycleResult, cycle: int, t: float, safety: str) -> None:
             row = claim()
             if row is None:  # full: dropped and counted by the ring
                 fill(r, cycle, t, safety, timing.newest, scratch)
@@ -144,24 +161,26 @@ class TelemetryService:
 
         return both
 
-    def command(self, req: Mapping[str, Any], on_loop: OnLoop, daemon: Any) -> dict[str, Any]:
+    def command(self, req: Mapping[str, Any], on_loop: OnLoop,
+                install: Callable[[Hook | None], None], core: RowFiller) -> dict[str, Any]:
         """``{"cmd": "trial", "action": "start" | "stop" | "status"}`` from the socket.
 
-        on_loop runs a function on the loop thread and returns its result; the daemon's
-        ``sample_hook`` is refreshed there (a trial needs samples even with telemetry off).
+        on_loop runs a function on the loop thread and returns its result; there the
+        loop's hook is rebuilt for ``core`` and handed to ``install`` (a trial needs
+        samples even with telemetry off).
         """
         action = req.get("action")
         tracker = self.tracker
         if action == "start":
             def start() -> int:
                 n = tracker.start()
-                daemon.sample_hook = self.hook(daemon.core)
+                install(self.hook(core))
                 return n
             return {"trial": on_loop(start), "started": True}
         if action == "stop":
             def stop() -> Any:
                 rows = tracker.stop()
-                daemon.sample_hook = self.hook(daemon.core)
+                install(self.hook(core))
                 return rows
             return tracker.finish(on_loop(stop)).as_dict()
         if action == "status":
