@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -25,10 +26,15 @@ _Z6 = np.zeros(6)
 
 
 class ControlCore:
-    """The chain and its state between cycles (loop thread only)."""
+    """The chain and its state between cycles (loop thread only).
 
-    def __init__(self, cfg: Config, model: RobotModel | None = None):
+    clock: the time [s] a cycle is judged at when :meth:`step` gets no ``now`` (the
+    readings' clock: ``time.monotonic``; tests give a scripted one)."""
+
+    def __init__(self, cfg: Config, model: RobotModel | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         self.cfg = cfg
+        self.clock = clock
         self.chain = CycleChain(cfg, model)
         self.dt = self.chain.dt
         self.model = self.chain.model
@@ -81,7 +87,7 @@ class ControlCore:
     def step(self, arm: ArmState, wrench: Wrench, odom: Odometry, dt: float,
              active: bool, now: float | None = None) -> CycleResult:
         """One cycle from the device readings; ``active``: the robot is armed."""
-        t_now = time.monotonic() if now is None else now
+        t_now = self.clock() if now is None else now
         self.cstate, result = self.chain.cycle(
             self.cstate, Readings(arm, wrench, odom, dt, active), t_now)
         return result
