@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 import yaml
 
+from loopback import free_loopback_host
 from mmctl.cli import main
 from mmctl.config import load_config
 from mmctl.errors import IpcError
@@ -83,9 +84,17 @@ def wait_for(pred: Callable[[], Any], what: str, proc: Proc | None = None,
 
 
 def write_config(tmp: Path, host: str) -> Path:
+    """config/sim.yaml for this test, with every staleness timeout, the devices' own
+    watchdogs and the loop's miss budget beyond what a loaded 2-core machine can
+    exhaust in these tests (it starves the loop, the arm's process, the simulated
+    robot's process and its socketcand traffic for a while): any fault fails them."""
     return write_sim_config(host, tmp, {
         "name": "cli-test", "sim": {"human": False, "auto_enable": False},
-        "daemon": {"socket_path": str(tmp / "run" / "mmctl.sock")}})
+        "daemon": {"socket_path": str(tmp / "run" / "mmctl.sock")},
+        "arm": {"stale_cycles": 10_000, "watchdog_min_frequency": 1.0},
+        "sensor": {"wrench": {"stale_timeout": 5.0}},
+        "base": {"canopen": {"heartbeat_timeout": 5.0}, "command_watchdog": 10.0},
+        "loop": {"max_consecutive_misses": 5_000, "max_total_misses": 1_000_000_000}})
 
 
 def spawn(cfg: Path, out: Path, env: dict[str, str], *extra: str) -> subprocess.Popen[bytes]:
@@ -98,8 +107,7 @@ def spawn(cfg: Path, out: Path, env: dict[str, str], *extra: str) -> subprocess.
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Proc]:
     tmp = tmp_path_factory.mktemp("daemon")
-    digits = "".join(ch for ch in os.environ.get("PYTEST_XDIST_WORKER", "gw0") if ch.isdigit())
-    host = f"127.{10 + int(digits or 0)}.202.2"
+    host = free_loopback_host(202)
     cfg = write_config(tmp, host)
     notify_path = tmp / "notify.sock"
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -211,8 +219,7 @@ def test_enable_and_a_push_moves_the_end_effector_that_way(daemon: Proc) -> None
     with pytest.raises(IpcError, match="tare is in progress"):
         daemon.call("enable")
     wait_for(lambda: not daemon.status()["taring"], "the tare", daemon)
-    wait_for(lambda: _enable_ok(daemon), "enable", daemon)
-    assert daemon.status()["state"] == "armed"
+    assert daemon.call("enable")["state"] == "armed"
     p0 = _ee(daemon)
     push = np.array([0.0, 25.0, 0.0])  # +y in the world
     daemon.sim("push", force=push.tolist())
@@ -221,33 +228,19 @@ def test_enable_and_a_push_moves_the_end_effector_that_way(daemon: Proc) -> None
     assert daemon.status()["state"] == "armed"
 
 
-#: Faults a loaded 2-core machine causes on its own (a starved loop, sensor or arm
-#: process); the tests below re-arm after one instead of failing on it.
-LOAD_FLAKES = {"loop_overrun", "arm_timestamp_stale", "sensor_stale", "drive_heartbeat_lost"}
-
-
 def _armed(daemon: Proc) -> bool:
-    """Armed; after a load fault, armed again (a fault of any other cause fails)."""
+    """Armed (a fault of any cause fails)."""
     st = daemon.status()
-    if st["state"] == "fault":
-        assert st["fault"] in LOAD_FLAKES, st
-        wait_for(lambda: _enable_ok(daemon), "enable after a load fault", daemon)
-        st = daemon.status()
     assert st["state"] == "armed", (st, daemon.log_text()[-3000:])
     return True
 
 
 def _moves(daemon: Proc, p0: np.ndarray, dy: float, what: str) -> np.ndarray:
-    """Wait until the end-effector moved ``dy`` [m] along +y from ``p0``; after a load
-    fault (:data:`LOAD_FLAKES`), re-arm and measure from where it stands then."""
+    """Wait until the end-effector moved ``dy`` [m] along +y from ``p0``, armed all along."""
     box: list[np.ndarray] = []
 
     def moved() -> bool:
-        if daemon.status()["state"] != "armed":
-            assert _armed(daemon)
-            box.clear()
-            p0[:] = _ee(daemon)
-            return False
+        assert _armed(daemon)
         box.append(_ee(daemon) - p0)
         return bool(box[-1][1] > dy)
 
@@ -255,16 +248,11 @@ def _moves(daemon: Proc, p0: np.ndarray, dy: float, what: str) -> np.ndarray:
     return box[-1]
 
 
-def _enable_ok(daemon: Proc) -> bool:
-    try:
-        daemon.call("enable")
-        return True
-    except IpcError:
-        return False
-
-
 def test_mode_changes_at_run_time(daemon: Proc, capsys: pytest.CaptureFixture[str]) -> None:
     sock = ["--socket", str(daemon.socket)]
+    # (the notify socket queues 10 datagrams, net.unix.max_dgram_qlen: the watchdog's
+    # pings since the last drain would leave the mode's status line no room)
+    daemon.drain_notify()
     assert main(["mode", "locomotion", *sock]) == 0
     assert "mode=locomotion" in capsys.readouterr().out
     _moves(daemon, _ee(daemon), 0.02, "motion in locomotion")
@@ -279,9 +267,7 @@ def test_mode_changes_at_run_time(daemon: Proc, capsys: pytest.CaptureFixture[st
     capsys.readouterr()
     assert _armed(daemon)
     msgs = daemon.drain_notify()
-    # the mode change reached systemd's status line (its state: armed, or a load fault's)
-    assert any(m.startswith("STATUS=state=") and m.endswith(" mode=locomotion")
-               for m in msgs), msgs
+    assert any(m == "STATUS=state=armed mode=locomotion" for m in msgs), msgs
 
 
 def test_sigterm_stops_with_the_stop_commands_sent(daemon: Proc) -> None:
