@@ -7,6 +7,7 @@ in parallel never meet.
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,20 @@ def _merge(into: dict[str, Any], extra: dict[str, Any]) -> None:
         if isinstance(value, dict) and isinstance(into.get(key), dict):
             _merge(into[key], value)
         else:
-            into[key] = value
+            into[key] = copy.deepcopy(value)
+
+
+#: Overrides that put every staleness timeout, the devices' own watchdogs and the loop's
+#: miss budget beyond what a loaded 2-core machine can exhaust in a test (it starves the
+#: loop, the arm's process, the simulated robot's process and its socketcand traffic for
+#: a while): for tests of something else, where any fault is a failure.  The faults
+#: themselves are tested on a scripted clock (test_fault_matrix.py).
+LOAD_PROOF: dict[str, Any] = {
+    "arm": {"stale_cycles": 10_000, "watchdog_min_frequency": 1.0},
+    "sensor": {"wrench": {"stale_timeout": 5.0}},
+    "base": {"canopen": {"heartbeat_timeout": 5.0}, "command_watchdog": 10.0},
+    "loop": {"max_consecutive_misses": 5_000, "max_total_misses": 1_000_000_000},
+}
 
 
 def sim_config(host: str, tmp: Path, extra: dict[str, Any] | None = None) -> dict[str, Any]:

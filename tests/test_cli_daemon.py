@@ -31,7 +31,7 @@ from mmctl.cli import main
 from mmctl.config import load_config
 from mmctl.errors import IpcError
 from mmctl.runtime.ipc import ControlClient, request
-from simconfig import write_sim_config
+from simconfig import LOAD_PROOF, write_sim_config
 
 pytestmark = pytest.mark.timeout(900)
 ROOT = Path(__file__).resolve().parents[1]
@@ -89,12 +89,8 @@ def write_config(tmp: Path, host: str) -> Path:
     exhaust in these tests (it starves the loop, the arm's process, the simulated
     robot's process and its socketcand traffic for a while): any fault fails them."""
     return write_sim_config(host, tmp, {
-        "name": "cli-test", "sim": {"human": False, "auto_enable": False},
-        "daemon": {"socket_path": str(tmp / "run" / "mmctl.sock")},
-        "arm": {"stale_cycles": 10_000, "watchdog_min_frequency": 1.0},
-        "sensor": {"wrench": {"stale_timeout": 5.0}},
-        "base": {"canopen": {"heartbeat_timeout": 5.0}, "command_watchdog": 10.0},
-        "loop": {"max_consecutive_misses": 5_000, "max_total_misses": 1_000_000_000}})
+        **LOAD_PROOF, "name": "cli-test", "sim": {"human": False, "auto_enable": False},
+        "daemon": {"socket_path": str(tmp / "run" / "mmctl.sock")}})
 
 
 def spawn(cfg: Path, out: Path, env: dict[str, str], *extra: str) -> subprocess.Popen[bytes]:

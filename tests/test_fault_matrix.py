@@ -794,16 +794,19 @@ def test_an_exception_in_a_cycle_stops_in_its_cycle(make_rig: Callable[..., Rig]
     assert_moves(rig.step())
 
 
-@pytest.mark.xfail(strict=True, reason="a cycle that raises sets no condition: enable is "
-                   "accepted while it keeps failing (the next cycle faults again)")
 def test_enable_is_refused_while_the_cycle_keeps_failing(
         make_rig: Callable[..., Rig]) -> None:
     rig = make_rig()
     rig.arm_and_push()
     rig.sensor.error = ValueError("a decoding bug")
     rig.step(3)
-    with pytest.raises(MmctlError, match="refused to enable"):
+    with pytest.raises(EnableRefused, match="internal_error"):
         rig.enable()
+    assert rig.daemon.safety.state is SafetyState.FAULT
+    rig.sensor.error = None
+    assert_still(rig.step())
+    rig.enable()  # one good cycle: the condition is gone
+    assert_moves(rig.step())
 
 
 def test_the_sample_hook_runs_after_the_stop_and_before_the_motion(

@@ -18,7 +18,7 @@ from mmctl.telemetry import layout
 from mmctl.telemetry.recording import column_name, load_recording, recording_metrics
 from mmctl.telemetry.rerun_sink import Destinations
 from mmctl.telemetry.service import TelemetryService
-from simconfig import sim_config
+from simconfig import LOAD_PROOF, sim_config
 from waiting import wait_for
 
 WAIT = 90.0  # generous: a loaded machine starts the fake UR process slowly
@@ -37,7 +37,9 @@ def _status(sock: Path) -> dict[str, Any] | None:
 
 @pytest.mark.timeout(300)
 def test_daemon_records_trial_and_metrics_match(tmp_path: Path, loopback_host: str) -> None:
-    cfg = config_from_dict(sim_config(loopback_host, tmp_path, {"telemetry": {"scene_rate": 20.0}}))
+    # no fault may interrupt the samples (a loaded machine's starved sensor reads would)
+    cfg = config_from_dict(sim_config(loopback_host, tmp_path,
+                                      {**LOAD_PROOF, "telemetry": {"scene_rate": 20.0}}))
     rrd = tmp_path / "run.rrd"
     sock = tmp_path / "mmctl.sock"
     service = TelemetryService(cfg, Destinations(record=str(rrd)))

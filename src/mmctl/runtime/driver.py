@@ -46,7 +46,10 @@ class CycleDriver(_Parts):
             self._drain_commands()
             self._cycle(tick)
         except Exception as exc:  # any bug in a cycle: stop the robot, log, go on
-            if self.safety.trip(FaultCause.INTERNAL, error=repr(exc)):
+            # a condition like any other: enable is refused while cycles keep failing
+            failed = {FaultCause.INTERNAL: {"error": repr(exc)}}
+            self.last_conditions = failed
+            if self.safety.update(failed):
                 self._send_stop()
                 self._update_status()
             suppressed = self._limiter.allow("cycle_failed")

@@ -132,6 +132,9 @@ class UrRtdeProcessArm:
         self.last_state = None
         self._seq += 1
         parent.send(("read", self._seq))  # the first sample, for the first read
+        # wait until it is there (not read here): a starved child's first answer must
+        # not make the first read after a (re)connect a stale fault
+        parent.poll(self.config.connect_timeout)
         log.info("arm_process_started", host=self.host, pid=proc.pid)
 
     def reconnect(self) -> None:
