@@ -1,11 +1,13 @@
-"""One control cycle as a pure function: ``controller.step(state, inputs) -> (state, outputs)``.
+"""The controller's part of a cycle, pure: ``controller.step(state, inputs) -> (state, outputs)``.
 
-The daemon's loop thread, the simulator/study and the tests all call the same code::
+From the processed human wrench ``f_h`` and the measured ``q``, ``q̇`` to the joint
+commands.  The whole cycle (the wrench pipeline from the sensor's raw sample, staleness
+and fault conditions, then this) is :meth:`mmctl.control.cycle.CycleChain.cycle`, which
+the daemon's loop, the study and the tests call::
 
     ctl = Controller(cfg)                 # builds the model and the solvers once
     state = ctl.initial_state()
     state, out = ctl.step(state, StepInputs(f_h, q, qdot, dt))
-    arm.speedj(out.qdot_arm); base.send(out.base_twist)
     state = ctl.set_mode(state, "locomotion")      # at run time, never a jump
 
 A cycle: admittance (exact ZOH) -> v_d; model at the measured q -> J, M;

@@ -1,4 +1,4 @@
-"""Four simulated CiA 402 drives on a python-can ``virtual`` channel, and the wheel plant.
+"""Four simulated CiA 402 drives on a python-can ``virtual`` channel, driving the wheels.
 
 :class:`FakeDrives` is the parent-side handle: ``FakeDrives(cfg).start()`` puts four
 ``canopen.LocalNode`` drives (node ids ``base.canopen.node_ids``) on the configured
