@@ -822,3 +822,17 @@ def test_the_sample_hook_runs_after_the_stop_and_before_the_motion(
     rig.sensor.force = np.array([0.0, 0.0, 200.0])
     rig.step()
     assert seen == [([], "armed"), (["base.stop", "arm.stop", "base.disable"], "fault")]
+
+
+def test_the_fault_matrix_in_the_docs_is_current() -> None:
+    """docs/fault-matrix.md is what tools/fault_matrix.py measures on these peers."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "tools" / "fault_matrix.py"
+    spec = importlib.util.spec_from_file_location("fault_matrix_tool", path)
+    assert spec is not None and spec.loader is not None
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    assert tool.DOC.read_text() == tool.generate(), (
+        "docs/fault-matrix.md is stale: run `python tools/fault_matrix.py --write`")
