@@ -279,3 +279,11 @@ def test_an_empty_file_is_the_defaults(tmp_path: Path) -> None:
     f = tmp_path / "empty.yaml"
     f.write_text("# nothing\n")
     assert load_config(f) == default_config()
+
+
+def test_a_tare_longer_than_the_person_can_let_go_is_rejected() -> None:
+    config_from_dict({"loop": {"rate_hz": 500}, "sensor": {"wrench": {"tare_samples": 10_000}}})
+    with pytest.raises(ConfigError) as info:
+        config_from_dict({"loop": {"rate_hz": 10}, "sensor": {"wrench": {"tare_samples": 1000}}})
+    assert info.value.key == "sensor.wrench.tare_samples"
+    assert "at most 20 s at loop.rate_hz = 10 Hz (<= 200 samples)" in str(info.value)

@@ -29,6 +29,9 @@ from mmctl.config.schema import build, param, section, sub, to_dict
 from mmctl.config.sensor import SensorCanConfig, SensorConfig
 from mmctl.errors import ConfigError
 
+#: The longest a tare may take [s] (sensor.wrench.tare_samples / loop.rate_hz).
+MAX_TARE_SECONDS = 20.0
+
 __all__ = ["Config", "ConfigError", "config_from_dict", "default_config", "load_config", "to_dict"]
 
 
@@ -60,7 +63,15 @@ class Config:
         return links
 
     def validate(self, path: str, source: str | None) -> None:
-        """The simulated robot serves CAN where the CAN sections look for it."""
+        """A tare fits in the person's patience; the simulated robot serves CAN where the
+        CAN sections look for it."""
+        tare = self.sensor.wrench.tare_samples / self.loop.rate_hz
+        if tare > MAX_TARE_SECONDS:
+            raise ConfigError(
+                "sensor.wrench.tare_samples", self.sensor.wrench.tare_samples,
+                f"must take at most {MAX_TARE_SECONDS:g} s at loop.rate_hz = "
+                f"{self.loop.rate_hz:g} Hz (<= {int(MAX_TARE_SECONDS * self.loop.rate_hz)} "
+                "samples): the person lets go of the handle for the whole tare", source)
         if not self.sim.enabled:
             return
         for key, link in self.can_links():
