@@ -284,6 +284,27 @@ def test_an_empty_file_is_the_defaults(tmp_path: Path) -> None:
 def test_a_tare_longer_than_the_person_can_let_go_is_rejected() -> None:
     config_from_dict({"loop": {"rate_hz": 500}, "sensor": {"wrench": {"tare_samples": 10_000}}})
     with pytest.raises(ConfigError) as info:
-        config_from_dict({"loop": {"rate_hz": 10}, "sensor": {"wrench": {"tare_samples": 1000}}})
+        config_from_dict({"loop": {"rate_hz": 50}, "sensor": {"wrench": {
+            "tare_samples": 2000, "stale_timeout": 0.05}}})
     assert info.value.key == "sensor.wrench.tare_samples"
-    assert "at most 20 s at loop.rate_hz = 10 Hz (<= 200 samples)" in str(info.value)
+    assert "at most 20 s at loop.rate_hz = 50 Hz (<= 1000 samples)" in str(info.value)
+
+
+@pytest.mark.parametrize(("data", "key", "fragment"), [
+    ({"loop": {"rate_hz": 10}}, "arm.watchdog_min_frequency", "<= loop.rate_hz / 2 = 5 Hz"),
+    ({"loop": {"rate_hz": 20, "base_divider": 4}, "arm": {"watchdog_min_frequency": 1}},
+     "loop.base_divider", "must be <= 2: a twist every 0.2 s"),
+    ({"loop": {"rate_hz": 50}, "arm": {"watchdog_min_frequency": 1}},
+     "sensor.wrench.stale_timeout", "must be > the loop period 1 / loop.rate_hz = 0.02 s"),
+])
+def test_what_the_loop_feeds_once_a_cycle_fits_its_period(
+        data: dict[str, Any], key: str, fragment: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        config_from_dict(data, "x.yaml")
+    assert info.value.key == key
+    assert fragment in str(info.value), str(info.value)
+    # the slowest loop the defaults fit; a slow loop with what fits it
+    config_from_dict({"loop": {"rate_hz": 200}})
+    config_from_dict({"loop": {"rate_hz": 20, "base_divider": 4},
+                      "arm": {"watchdog_min_frequency": 1}, "base": {"command_watchdog": 0.4},
+                      "sensor": {"wrench": {"stale_timeout": 0.1}}})

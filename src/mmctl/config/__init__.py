@@ -53,6 +53,30 @@ class Config:
     sim: SimConfig = sub(SimConfig)
     name: str = param("mmctl", doc="a label for logs and recordings")
 
+    def _check_against_the_period(self, source: str | None) -> None:
+        """What the loop feeds once per cycle must not starve at ``loop.rate_hz``."""
+        rate = self.loop.rate_hz
+        period = 1.0 / rate
+        if self.arm.watchdog_min_frequency > rate / 2.0:
+            raise ConfigError(
+                "arm.watchdog_min_frequency", self.arm.watchdog_min_frequency,
+                f"must be <= loop.rate_hz / 2 = {rate / 2.0:g} Hz: the loop kicks the "
+                "controller's watchdog once per cycle, and one late cycle must not stop "
+                "the arm", source)
+        sends = self.loop.base_divider * period
+        if sends > self.base.command_watchdog / 2.0:
+            raise ConfigError(
+                "loop.base_divider", self.loop.base_divider,
+                f"must be <= {int(self.base.command_watchdog / 2.0 * rate)}: a twist every "
+                f"{sends:g} s (base_divider / loop.rate_hz) must reach the drives twice "
+                f"within base.command_watchdog = {self.base.command_watchdog:g} s (the "
+                "drives' or the bridge's own stop)", source)
+        if self.sensor.wrench.stale_timeout <= period:
+            raise ConfigError(
+                "sensor.wrench.stale_timeout", self.sensor.wrench.stale_timeout,
+                f"must be > the loop period 1 / loop.rate_hz = {period:g} s: a sample is "
+                "up to a period old when the next cycle judges it", source)
+
     def can_links(self) -> list[tuple[str, CanopenConfig | SensorCanConfig]]:
         """The CAN sections in use, as (key, section): the base's CANopen bus (when
         ``base.transport`` is canopen) and the sensor's (when ``sensor.transport`` is can)."""
@@ -63,8 +87,9 @@ class Config:
         return links
 
     def validate(self, path: str, source: str | None) -> None:
-        """A tare fits in the person's patience; the simulated robot serves CAN where the
-        CAN sections look for it."""
+        """The timeouts and watchdogs fit the loop's period; a tare fits in the person's
+        patience; the simulated robot serves CAN where the CAN sections look for it."""
+        self._check_against_the_period(source)
         tare = self.sensor.wrench.tare_samples / self.loop.rate_hz
         if tare > MAX_TARE_SECONDS:
             raise ConfigError(
