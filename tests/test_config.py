@@ -308,3 +308,16 @@ def test_what_the_loop_feeds_once_a_cycle_fits_its_period(
     config_from_dict({"loop": {"rate_hz": 20, "base_divider": 4},
                       "arm": {"watchdog_min_frequency": 1}, "base": {"command_watchdog": 0.4},
                       "sensor": {"wrench": {"stale_timeout": 0.1}}})
+
+
+@pytest.mark.parametrize(("content", "fragment"), [
+    (b"loop:\n  rate_hz: " + b"9" * 400 + b"\n", "loop.rate_hz = 9999"),  # beyond a double
+    (b"a: " + b"[" * 5000, "nested too deeply"),
+    (b"\xff\xfe name: x\n", "is not UTF-8 text"),
+])
+def test_hostile_files_are_one_config_error(tmp_path: Path, content: bytes, fragment: str) -> None:
+    f = tmp_path / "hostile.yaml"
+    f.write_bytes(content)
+    with pytest.raises(ConfigError) as info:
+        load_config(f)
+    assert fragment in str(info.value)

@@ -109,7 +109,10 @@ def _scalar(path: str, value: Any, typ: Any, meta: Mapping[str, Any], source: st
     if typ is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(path, value, "must be a number", source)
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:  # an integer beyond any double
+            raise ConfigError(path, value, "must be a finite number", source) from None
         _check_range(path, value, meta, source)
         return value
     if typ is int:
