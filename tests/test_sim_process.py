@@ -98,7 +98,8 @@ def test_status_and_push_from_the_cli(sim: Sim, capsys: pytest.CaptureFixture[st
     (["push", "1", "x", "2"], "push needs three numbers FX FY FZ"),
     (["person", "maybe"], "person needs on or off"),
     (["fault"], "fault needs one NAME"),
-    (["fault", "gremlins"], "unknown sim fault 'gremlins'; known: sensor_silent"),
+    (["fault", "gremlins"], "fault: name = 'gremlins': must be one of: sensor_silent"),
+    (["push", "0", "1", "0", "--seconds", "-1"], "push: seconds = -1.0: must be > 0"),
     (["status", "extra"], "status takes no arguments"),
 ])
 def test_cli_errors_are_one_line(sim: Sim, capsys: pytest.CaptureFixture[str],
@@ -123,12 +124,21 @@ def test_malformed_requests_get_errors_and_the_sim_carries_on(sim: Sim) -> None:
         assert c.raw(b"{oops")["error"].startswith("malformed request")
         assert c.raw(b'{"cmd": "explode"}')["error"] == (
             "unknown command 'explode'; known: status, push, person, press, fault, log, stop")
-        assert "push must be 3 finite numbers" in c.raw(
-            b'{"cmd": "push", "force": [1, "NaN", 2]}')["error"]
-        assert "push duration must be" in c.raw(
-            b'{"cmd": "push", "force": [1, 2, 3], "seconds": -1}')["error"]
-        assert "hold needs" in c.raw(b'{"cmd": "person", "hold": "long"}')["error"]
-        assert c.call("status")["person"] == "off"
+        assert c.raw(b'{"cmd": "push", "force": [1, "NaN", 2]}')["error"] == (
+            "push: force[1] = 'NaN': must be a number [N]")
+        assert c.raw(b'{"cmd": "push", "force": [1, 2, 3], "seconds": -1}')["error"] == (
+            "push: seconds = -1: must be > 0 and <= 3600 [s]")
+        # issue 17: an unknown field left the push on forever; a string "false" was true
+        assert c.raw(b'{"cmd": "push", "force": [0, 30, 0], "duration": "x"}')["error"] == (
+            "push: duration = 'x': unknown field; push takes: force, seconds")
+        assert c.raw(b'{"cmd": "person", "on": "false"}')["error"] == (
+            "person: on = 'false': must be true or false (a JSON boolean)")
+        assert c.raw(b'{"cmd": "fault", "name": "sensor_silent", "on": "off"}')["error"] == (
+            "fault: on = 'off': must be true or false (a JSON boolean)")
+        assert c.raw(b'{"cmd": "person", "hold": "long"}')["error"] == (
+            "person: hold = 'long': must be a number [s]")
+        st = c.call("status")
+        assert st["person"] == "off" and st["push"] is None and st["faults"] == []
 
 
 def test_a_second_sim_on_the_same_socket_refuses(sim: Sim) -> None:

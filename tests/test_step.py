@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from mmctl.config import config_from_dict, default_config
+from mmctl.config import Config, config_from_dict, default_config
 from mmctl.control.step import (
     Controller,
     ControllerState,
@@ -132,11 +132,17 @@ def test_outputs_are_consistent(ctl: Controller) -> None:
         ctl.set_switch(state, "both")
 
 
+def _without_accel_limits(cfg: Config) -> Config:
+    """``cfg`` with its acceleration limits switched off (1e6): past the hardware's, so no
+    configuration file may say so (the config rejects it); built around the validation."""
+    limits = dataclasses.replace(cfg.limits, joint_acceleration=(1e6,) * 6,
+                                 base_linear_acceleration=1e6, base_angular_acceleration=1e6)
+    return dataclasses.replace(cfg, limits=limits)
+
+
 def _no_accel_limits() -> Controller:
     """Acceleration limits would hide a jump: switch them off to test the blend itself."""
-    return Controller(config_from_dict({"limits": {
-        "joint_acceleration": [1e6] * 6, "base_linear_acceleration": 1e6,
-        "base_angular_acceleration": 1e6}}))
+    return Controller(_without_accel_limits(default_config()))
 
 
 def _max_step_change(outs) -> float:
@@ -192,9 +198,7 @@ def test_mode_changes_mid_motion_never_jump(change: str) -> None:
 
 def test_without_a_blend_the_same_toggle_jumps() -> None:
     """Control for the test above: blend_time = dt makes the toggle a one-cycle step."""
-    cfg = config_from_dict({"idk": {"switch": {"blend_time": T}}, "limits": {
-        "joint_acceleration": [1e6] * 6, "base_linear_acceleration": 1e6,
-        "base_angular_acceleration": 1e6}})
+    cfg = _without_accel_limits(config_from_dict({"idk": {"switch": {"blend_time": T}}}))
     ctl = Controller(cfg)
     q, hold = ctl.q_des.copy(), np.zeros(9)
     state = ctl.initial_state(Mode.SWITCH)

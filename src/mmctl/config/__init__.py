@@ -8,6 +8,7 @@ Errors name the key path, the value and what is allowed::
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,9 @@ from mmctl.config.runtime import (
 from mmctl.config.schema import build, param, section, sub, to_dict
 from mmctl.config.sensor import SensorCanConfig, SensorConfig
 from mmctl.errors import ConfigError
+
+#: The longest a tare may take [s] (sensor.wrench.tare_samples / loop.rate_hz).
+MAX_TARE_SECONDS = 20.0
 
 __all__ = ["Config", "ConfigError", "config_from_dict", "default_config", "load_config", "to_dict"]
 
@@ -49,6 +53,30 @@ class Config:
     sim: SimConfig = sub(SimConfig)
     name: str = param("mmctl", doc="a label for logs and recordings")
 
+    def _check_against_the_period(self, source: str | None) -> None:
+        """What the loop feeds once per cycle must not starve at ``loop.rate_hz``."""
+        rate = self.loop.rate_hz
+        period = 1.0 / rate
+        if self.arm.watchdog_min_frequency > rate / 2.0:
+            raise ConfigError(
+                "arm.watchdog_min_frequency", self.arm.watchdog_min_frequency,
+                f"must be <= loop.rate_hz / 2 = {rate / 2.0:g} Hz: the loop kicks the "
+                "controller's watchdog once per cycle, and one late cycle must not stop "
+                "the arm", source)
+        sends = self.loop.base_divider * period
+        if sends > self.base.command_watchdog / 2.0:
+            raise ConfigError(
+                "loop.base_divider", self.loop.base_divider,
+                f"must be <= {int(self.base.command_watchdog / 2.0 * rate)}: a twist every "
+                f"{sends:g} s (base_divider / loop.rate_hz) must reach the drives twice "
+                f"within base.command_watchdog = {self.base.command_watchdog:g} s (the "
+                "drives' or the bridge's own stop)", source)
+        if self.sensor.wrench.stale_timeout <= period:
+            raise ConfigError(
+                "sensor.wrench.stale_timeout", self.sensor.wrench.stale_timeout,
+                f"must be > the loop period 1 / loop.rate_hz = {period:g} s: a sample is "
+                "up to a period old when the next cycle judges it", source)
+
     def can_links(self) -> list[tuple[str, CanopenConfig | SensorCanConfig]]:
         """The CAN sections in use, as (key, section): the base's CANopen bus (when
         ``base.transport`` is canopen) and the sensor's (when ``sensor.transport`` is can)."""
@@ -59,7 +87,16 @@ class Config:
         return links
 
     def validate(self, path: str, source: str | None) -> None:
-        """The simulated robot serves CAN where the CAN sections look for it."""
+        """The timeouts and watchdogs fit the loop's period; a tare fits in the person's
+        patience; the simulated robot serves CAN where the CAN sections look for it."""
+        self._check_against_the_period(source)
+        tare = self.sensor.wrench.tare_samples / self.loop.rate_hz
+        if tare > MAX_TARE_SECONDS:
+            raise ConfigError(
+                "sensor.wrench.tare_samples", self.sensor.wrench.tare_samples,
+                f"must take at most {MAX_TARE_SECONDS:g} s at loop.rate_hz = "
+                f"{self.loop.rate_hz:g} Hz (<= {int(MAX_TARE_SECONDS * self.loop.rate_hz)} "
+                "samples): the person lets go of the handle for the whole tare", source)
         if not self.sim.enabled:
             return
         for key, link in self.can_links():
@@ -89,17 +126,87 @@ def default_config() -> Config:
     return config_from_dict({})
 
 
+class _Loader(yaml.SafeLoader):  # type: ignore[misc]  # (PyYAML: no type stubs here)
+    """PyYAML's safe loader, with YAML 1.2's floats (``1e-3``: a number, not the string
+    YAML 1.1 makes of it); :func:`_parse` checks the node tree for duplicate keys before
+    constructing it (YAML 1.2 forbids them; PyYAML keeps the last one silently)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+def _key_text(node: yaml.Node) -> str:
+    return str(node.value) if isinstance(node, yaml.ScalarNode) else f"<{node.id}>"
+
+
+def _check_duplicates(root: yaml.Node, source: str) -> None:
+    """Every mapping in the document, at any depth: each key once (a ``<<`` merge key is
+    YAML's own way to override, not a duplicate).  Iterative: any depth the parser took."""
+    seen_nodes: set[int] = set()
+    stack: list[tuple[yaml.Node, str]] = [(root, "")]
+    while stack:
+        node, path = stack.pop()
+        if id(node) in seen_nodes:  # an alias of a node already checked
+            continue
+        seen_nodes.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            first: dict[tuple[str, str], int] = {}
+            for key_node, value_node in node.value:
+                if key_node.tag == _MERGE_TAG:
+                    stack.append((value_node, path))
+                    continue
+                key = _key_text(key_node)
+                key_path = f"{path}.{key}" if path else key
+                line = key_node.start_mark.line + 1
+                ident = (key_node.tag, key) if isinstance(key_node, yaml.ScalarNode) else (
+                    "", str(id(key_node)))
+                if ident in first:
+                    raise ConfigError(
+                        key_path, f"lines {first[ident]} and {line}",
+                        f"duplicate key (first on line {first[ident]}, again on line {line}): "
+                        "YAML would silently keep only the last one; give it once", source)
+                first[ident] = line
+                stack.append((value_node, key_path))
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend((item, f"{path}[{i}]") for i, item in enumerate(node.value))
+
+
+def _parse(text: str, source: str) -> Any:
+    """The YAML document in ``text`` (None when empty), with no duplicate keys."""
+    loader = _Loader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_duplicates(node, source)
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
 def load_config(path: str | Path) -> Config:
-    """Read and validate a YAML file; every problem raises :class:`ConfigError`."""
+    """Read and validate a YAML file; every problem raises :class:`ConfigError`
+    (including a key given twice in one mapping: the error names both lines)."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError("<file>", str(p), f"cannot be read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError("<file>", str(p), f"is not UTF-8 text ({exc.reason} at byte "
+                          f"{exc.start})") from None
     try:
-        data = yaml.safe_load(text)
+        data = _parse(text, str(p))
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}" if mark is not None else "?"
         raise ConfigError("<yaml>", where, f"is not valid YAML ({getattr(exc, 'problem', exc)})", str(p)) from None
+    except RecursionError:
+        raise ConfigError("<yaml>", "?", "is nested too deeply to be a configuration",
+                          str(p)) from None
     return config_from_dict(data, str(p))

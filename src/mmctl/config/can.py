@@ -25,8 +25,11 @@ def host() -> Any:
 
 
 def port() -> Any:
-    return param(29536, gt=0, le=65535, doc="socketcand server port (socketcand only)")
+    return param(29536, ge=1, le=65535, doc="socketcand server port (socketcand only)",
+                 why="a TCP port")
 
 
 def bitrate() -> Any:
-    return param(1_000_000, gt=0, unit="bit/s")
+    return param(1_000_000, ge=10_000, le=1_000_000, unit="bit/s",
+                 doc="CAN bit rate (socketcan sets it on the interface; the others ignore it)",
+                 why="classic CAN (ISO 11898) runs from 10 kbit/s to 1 Mbit/s")

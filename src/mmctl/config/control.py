@@ -40,12 +40,14 @@ class AdmittanceConfig:
     """Virtual admittance M v' + B v = f_h, per axis (vx, vy, vz, wx, wy, wz)."""
 
     mass: tuple[float, ...] = param(
-        (4.0,) * 6, unit="kg | kg m^2", shape=(6,), gt=0.0,
+        (4.0,) * 6, unit="kg | kg m^2", shape=(6,), ge=0.1, le=1000.0,
         doc="diagonal of the virtual mass M (must be positive definite: every entry > 0)",
+        why="positive definite; the paper's 4; a virtual ton is beyond a person's push",
     )
     damping: tuple[float, ...] = param(
-        (75.0,) * 6, unit="N s/m | N m s/rad", shape=(6,), gt=0.0,
+        (75.0,) * 6, unit="N s/m | N m s/rad", shape=(6,), ge=1.0, le=10_000.0,
         doc="diagonal of the virtual damping B (every entry > 0)",
+        why="the paper's 75; below 1 a 15 N push asks for 15 m/s, above 10 000 for 1.5 mm/s",
     )
 
 
@@ -62,10 +64,13 @@ class LocomotionConfig:
     error from the damping is < 1 %.
     """
 
-    w_alpha: tuple[float, ...] = param((1.0e3,) * 6, shape=(6,), gt=0.0, doc="task weights")
+    w_alpha: tuple[float, ...] = param(
+        (1.0e3,) * 6, shape=(6,), ge=1e-6, le=1e9, doc="task weights",
+        why="relative weights: beyond 1e9 the normal equations lose the precision of doubles")
     w_beta: tuple[float, ...] = param(
-        (1.0,) * 6 + (1.0e-3,) * 3, shape=(9,), ge=0.0,
+        (1.0,) * 6 + (1.0e-3,) * 3, shape=(9,), ge=0.0, le=1e9,
         doc="velocity penalties (6 arm joints, then base vx, vy, wz)",
+        why="relative weights: beyond 1e9 the normal equations lose the precision of doubles",
     )
 
 
@@ -74,17 +79,25 @@ class SwitchConfig:
     """The switch benchmark: manipulation (arm only) <-> locomotion, blended."""
 
     initial: Literal["manipulation", "locomotion"] = param("manipulation")  # SwitchMode
-    blend_time: float = param(0.3, unit="s", gt=0.0, le=5.0, doc="cross-fade time of a toggle")
+    blend_time: float = param(
+        0.3, unit="s", gt=0.0, le=5.0, doc="cross-fade time of a toggle",
+        why="one cycle (a step) up to a 5 s fade that a person would feel as a lag")
 
 
 @section
 class ConstrainedConfig:
     """Constrained min-energy QP (hard joint position/velocity/acceleration limits)."""
 
-    max_iter: int = param(200, gt=0, doc="QP solver iteration cap per cycle")
-    eps: float = param(1e-6, gt=0.0, doc="QP solver tolerance")
+    max_iter: int = param(200, ge=1, le=100_000, doc="QP solver iteration cap per cycle",
+                          why="one ADMM iteration takes microseconds: 100 000 would fill "
+                          "many 2 ms cycles")
+    eps: float = param(1e-6, ge=1e-12, le=1e-2, doc="QP solver tolerance",
+                       why="below 1e-12 is below double precision of the QP; above 1 % the "
+                       "constraints are not held")
     task_weight: float = param(
-        1e6, gt=0.0,
+        1e6, ge=1.0, le=1e12,
+        why="the soft task must outweigh the energy term (>= 1); beyond 1e12 the QP is "
+        "ill-conditioned in doubles",
         doc="weight rho of the soft task |J qd - v_d|^2 rho / 2 used when a bound is active "
         "(keeps the QP feasible; the twist error is ~ |M (qd - qd_null)| / rho)",
     )
@@ -96,15 +109,19 @@ class IdkConfig:
 
     strategy: Strategy = param("min-energy", doc="IDK strategy at start-up")
     null_gain: tuple[float, ...] = param(
-        (1.0,) * 6 + (0.0,) * 3, unit="1/s", shape=(9,), ge=0.0,
+        (1.0,) * 6 + (0.0,) * 3, unit="1/s", shape=(9,), ge=0.0, le=100.0,
         doc="diagonal of G in (I - J#J) G (q_des - q); base entries are 0 in the paper",
+        why="the paper's 1; a pull faster than 100/s is a step at 500 Hz (G T -> 1)",
     )
     singular_threshold: float = param(
-        1e-3, gt=0.0,
+        1e-3, ge=1e-9, le=1.0,
         doc="smallest eigenvalue of J M^-1 J^T (or J J^T) below which damping starts",
+        why="below 1e-9 damping starts only once the inverse has lost its digits; above 1 "
+        "every pose is damped",
     )
     max_damping: float = param(
-        1e-2, gt=0.0, doc="damping added at an exactly singular configuration"
+        1e-2, ge=1e-9, le=1.0, doc="damping added at an exactly singular configuration",
+        why="must be > 0 to invert a singular matrix; above 1 it swamps the task",
     )
     locomotion: LocomotionConfig = sub(LocomotionConfig)
     switch: SwitchConfig = sub(SwitchConfig)
@@ -112,39 +129,68 @@ class IdkConfig:
 
 
 _DEG = 3.141592653589793 / 180.0
+_TWO_PI = 6.2832  # [rad] 2 pi, rounded up: the UR10e's +-360 deg joint range
+
+#: the UR10e's joint speed limits [rad/s] (120 deg/s base and shoulder, 180 deg/s the
+#: others), to 4 decimals (rounded up: the defaults are the exact values)
+UR10E_JOINT_SPEED = (2.0944, 2.0944, 3.1416, 3.1416, 3.1416, 3.1416)
 
 
 @section
 class LimitsConfig:
-    """Velocity/acceleration/position limits; q' is scaled as a whole to respect them."""
+    """Velocity/acceleration/position limits; q' is scaled as a whole to respect them.
+
+    Upper bounds are the hardware's own limits (SPEC section 2: the UR10e's tables, the
+    RB-KAIROS+ vendor configuration): a configured limit may only be tighter."""
 
     joint_velocity: tuple[float, ...] = param(
         (120 * _DEG, 120 * _DEG, 180 * _DEG, 180 * _DEG, 180 * _DEG, 180 * _DEG),
-        unit="rad/s", shape=(6,), gt=0.0, doc="UR10e joint speed limits",
+        unit="rad/s", shape=(6,), ge=0.01, le=UR10E_JOINT_SPEED, doc="UR10e joint speed limits",
+        why="the UR10e's own limits: 120 deg/s (base, shoulder), 180 deg/s (the others)",
     )
     joint_acceleration: tuple[float, ...] = param(
-        (4.0,) * 6, unit="rad/s^2", shape=(6,), gt=0.0, doc="arm joint acceleration limits"
+        (4.0,) * 6, unit="rad/s^2", shape=(6,), ge=0.1, le=40.0,
+        doc="arm joint acceleration limits",
+        why="ur_rtde's ceiling on a joint acceleration is 40 rad/s^2",
     )
     joint_position_min: tuple[float, ...] = param(
         (-2 * 3.141592653589793, -2 * 3.141592653589793, -3.141592653589793,
          -2 * 3.141592653589793, -2 * 3.141592653589793, -2 * 3.141592653589793),
-        unit="rad", shape=(6,),
+        unit="rad", shape=(6,), ge=-_TWO_PI, le=_TWO_PI,
+        why="the UR10e's joints turn +-360 deg",
     )
     joint_position_max: tuple[float, ...] = param(
         (2 * 3.141592653589793, 2 * 3.141592653589793, 3.141592653589793,
          2 * 3.141592653589793, 2 * 3.141592653589793, 2 * 3.141592653589793),
-        unit="rad", shape=(6,),
+        unit="rad", shape=(6,), ge=-_TWO_PI, le=_TWO_PI,
+        why="the UR10e's joints turn +-360 deg",
     )
     position_margin: float = param(
-        0.15, unit="rad", gt=0.0, doc="braking zone before a joint position limit"
+        0.15, unit="rad", ge=0.001, le=1.0, doc="braking zone before a joint position limit",
+        why="from a milliradian to ~57 deg (a margin in degrees, e.g. 10, is caught)"
     )
-    base_linear_velocity: float = param(1.5, unit="m/s", gt=0.0)
-    base_angular_velocity: float = param(3.0, unit="rad/s", gt=0.0)
-    base_linear_acceleration: float = param(3.0, unit="m/s^2", gt=0.0)
-    base_angular_acceleration: float = param(3.0, unit="rad/s^2", gt=0.0)
-    wheel_velocity: float = param(27.27, unit="rad/s", gt=0.0)
-    ee_linear_velocity: float = param(1.0, unit="m/s", gt=0.0, doc="end-effector speed cap")
-    ee_angular_velocity: float = param(1.5, unit="rad/s", gt=0.0)
+    base_linear_velocity: float = param(
+        1.5, unit="m/s", ge=0.01, le=1.5,
+        why="the RB-KAIROS+ vendor configuration's 1.5 m/s")
+    base_angular_velocity: float = param(
+        3.0, unit="rad/s", ge=0.01, le=3.0,
+        why="the RB-KAIROS+ vendor configuration's 3 rad/s")
+    base_linear_acceleration: float = param(
+        3.0, unit="m/s^2", ge=0.05, le=3.0,
+        why="the RB-KAIROS+ vendor configuration's 3 m/s^2")
+    base_angular_acceleration: float = param(
+        3.0, unit="rad/s^2", ge=0.05, le=6.0,
+        why="the vendor's 3 m/s^2 of the wheels, turning in place: 3 / (0.215 + 0.269) m "
+        "= 6.2 rad/s^2")
+    wheel_velocity: float = param(
+        27.27, unit="rad/s", ge=0.1, le=27.27,
+        why="the RB-KAIROS+ vendor configuration's 27.27 rad/s")
+    ee_linear_velocity: float = param(
+        1.0, unit="m/s", ge=0.01, le=3.0, doc="end-effector speed cap",
+        why="ur_rtde's ceiling on a tool speed is 3 m/s")
+    ee_angular_velocity: float = param(
+        1.5, unit="rad/s", ge=0.01, le=6.0,
+        why="the wrist's 180 deg/s plus the base's 3 rad/s is 6.1 rad/s")
 
     def validate(self, path: str, source: str | None) -> None:
         for i, (lo, hi) in enumerate(zip(self.joint_position_min, self.joint_position_max)):

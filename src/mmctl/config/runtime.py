@@ -12,28 +12,44 @@ from mmctl.errors import ConfigError
 class LoopConfig:
     """The fixed-period control loop."""
 
-    rate_hz: float = param(500.0, unit="Hz", gt=0.0, le=2000.0)
+    rate_hz: float = param(
+        500.0, unit="Hz", ge=1.0, le=1000.0,
+        why="the UR10e's RTDE runs at 500 Hz; above 1 kHz the period is shorter than a "
+        "CAN sensor's request and reply; below 1 Hz there is no control")
     spin_margin: float = param(
-        0.0001, unit="s", ge=0.0,
+        0.0001, unit="s", ge=0.0, le=0.01,
+        why="a busy-wait window inside one period (checked against loop.rate_hz)",
         doc="sleep until this long before the deadline, then spin (holding the interpreter: "
         "100 us keeps wake latency p99 ~15 us with a 1 us timer slack; 300 us measured "
         "compute p99 15 % worse, the other threads' work pushed into the cycle)",
     )
-    max_consecutive_misses: int = param(5, gt=0, doc="consecutive deadline misses -> fault")
-    max_total_misses: int = param(1000, gt=0, doc="total misses since enable -> fault")
-    rt_priority: int = param(0, ge=0, le=99, doc="SCHED_FIFO priority; 0 = do not ask")
-    cpu_affinity: tuple[int, ...] = param((), doc="CPUs to pin the loop thread to; () = any")
+    max_consecutive_misses: int = param(
+        5, ge=1, le=10_000, doc="consecutive deadline misses -> fault",
+        why="10 000 late cycles in a row is 20 s of a late loop at 500 Hz: no budget")
+    max_total_misses: int = param(
+        1000, ge=1, le=1_000_000_000, doc="total misses since enable -> fault",
+        why="a billion misses is 23 days of every cycle late at 500 Hz: the largest "
+        "budget that still is one")
+    rt_priority: int = param(0, ge=0, le=99, doc="SCHED_FIFO priority; 0 = do not ask",
+                             why="SCHED_FIFO priorities are 1..99")
+    cpu_affinity: tuple[int, ...] = param(
+        (), ge=0, le=1023, doc="CPUs to pin the loop thread to; () = any",
+        why="CPU numbers of a cpu_set_t (1024 CPUs)")
     cpu_dma_latency: int = param(
         -1, unit="us", ge=-1, le=2_000_000,
+        why="the kernel's PM QoS range (at most 2 s)",
         doc="PM QoS request held while the daemon runs (/dev/cpu_dma_latency): CPUs idle "
         "only in states that wake within this time; 0 = never halt (poll); -1 = do not ask",
     )
     switch_interval: float = param(
-        0.0001, unit="s", gt=0.0, le=0.1,
+        0.0001, unit="s", ge=1e-6, le=0.1,
         doc="Python GIL switch interval of the daemon: how long another thread may keep "
         "the loop thread waiting for the interpreter",
+        why="from a microsecond to 50 periods at 500 Hz",
     )
-    timing_samples: int = param(8192, gt=1, doc="cycles kept in the timing ring")
+    timing_samples: int = param(
+        8192, ge=2, le=1_048_576, doc="cycles kept in the timing ring",
+        why="2^20 cycles is 35 min at 500 Hz, ~25 MB of ring")
     sensor_request: Literal["start", "end"] = param(
         "start",
         doc="when a request/reply sensor (CAN) is asked for its next sample: at the end of "
@@ -41,15 +57,24 @@ class LoopConfig:
         "used) or at its start (the arm and the base are read while it answers: a fresher "
         "sample, and the reply's wait inside the cycle); `mmctl bench loop` measures both")
     base_divider: int = param(
-        2, ge=1, le=50,
+        2, ge=1, le=50, why="at 500 Hz: every cycle down to 10 Hz",
         doc="send the base twist every n-th cycle (each command is 4 RPDOs + SYNC + 4 "
         "TPDOs: ~50 % of a 1 Mbit/s CAN bus at 500 Hz); stop commands go out at once",
     )
     base_jump: float = param(
-        0.001, unit="m/s | rad/s", gt=0.0,
+        0.001, unit="m/s | rad/s", ge=1e-6, le=1.0,
+        why="from a micrometre per second to most of the base's 1.5 m/s",
         doc="a base twist differing from the last one sent by more than this goes out in "
         "its own cycle, whatever base_divider says (a new push reaches the wheels one "
         "period sooner; steady motion keeps the divided rate)")
+
+
+    def validate(self, path: str, source: str | None) -> None:
+        period = 1.0 / self.rate_hz
+        if self.spin_margin >= period:
+            raise ConfigError(f"{path}.spin_margin" if path else "spin_margin", self.spin_margin,
+                              f"must be < the loop period 1 / loop.rate_hz = {period:g} s",
+                              source)
 
 
 @section
@@ -57,7 +82,10 @@ class SafetyConfig:
     """Fault thresholds not owned by a device section."""
 
     max_condition: float = param(
-        1e4, gt=1.0, doc="condition number of the whole-body J J^T above which the pose is 'singular'"
+        1e4, gt=1.0, le=1e8,
+        doc="condition number of the whole-body J J^T above which the pose is 'singular'",
+        why="a condition number is > 1; past 1e8 the inverse of J J^T has lost half the "
+        "digits of a double before the check trips",
     )
 
 
@@ -68,16 +96,20 @@ class DaemonConfig:
     socket_path: str = param(
         "", doc="control socket; '' = $RUNTIME_DIRECTORY or $XDG_RUNTIME_DIR or /tmp, + mmctl.sock"
     )
-    socket_mode: int = param(0o660, ge=0, le=0o777)
+    socket_mode: int = param(0o660, ge=0, le=0o777, why="file permission bits (0o777 at most)")
     ready_timeout: float = param(
-        10.0, unit="s", gt=0.0,
+        10.0, unit="s", ge=0.1, le=600.0,
         doc="READY=1 is sent after the first healthy cycle, or after this long regardless",
+        why="the devices connect in seconds; 10 min is past any service manager's patience",
     )
     command_timeout: float = param(
-        5.0, unit="s", gt=0.0, doc="how long a control command waits for the loop to take it"
+        5.0, unit="s", ge=0.1, le=300.0,
+        doc="how long a control command waits for the loop to take it",
+        why="enable/disable take up to the drives' stop time plus a few SDO timeouts; an "
+        "operator waits minutes at most",
     )
     switch_input: int = param(
-        -1, ge=-1, le=17,
+        -1, ge=-1, le=17, why="the UR's digital inputs are 0..17; -1 = none",
         doc="UR digital input (0-7 standard, 8-15 configurable, 16-17 tool) of the handle "
         "button that toggles manipulation/locomotion in switch mode; -1 = no button",
     )
@@ -89,13 +121,18 @@ class TelemetryConfig:
     """rerun telemetry (off by default; `mmctl run --viewer/--connect/--record` turn it on)."""
 
     enabled: bool = param(False, doc="publish; with no destination below: the loopback viewer")
-    plot_rate: float = param(100.0, unit="Hz", gt=0.0, doc="rate of the plot-only series")
+    plot_rate: float = param(
+        100.0, unit="Hz", ge=0.1, le=1000.0, doc="rate of the plot-only series",
+        why="at most one point per cycle of the fastest loop (1 kHz)")
     scene_rate: float = param(
-        15.0, unit="Hz", gt=0.0, le=200.0,
+        15.0, unit="Hz", ge=0.1, le=200.0,
+        why="a viewer draws at most ~200 frames/s; below 0.1 Hz it is no live view",
         doc="3-D frames and publisher wake-ups per second (fewer wake-ups, larger batches: "
         "less interference with the loop; `mmctl bench loop --telemetry` measures it)",
     )
-    queue_size: int = param(4096, gt=0, doc="samples (ring rows) held between the loop and the publisher")
+    queue_size: int = param(
+        4096, ge=16, le=1_048_576, doc="samples (ring rows) held between the loop and the publisher",
+        why="at least a few cycles; 2^20 rows is 35 min at 500 Hz in shared memory")
     process: bool = param(
         True, doc="run the publisher (batching, 3-D frames, rerun) in a child process that "
         "maps the loop's sample ring from shared memory, so none of its work takes the "
@@ -120,18 +157,22 @@ class SimConfig:
     auto_enable: bool = param(
         True, doc="arm the simulated robot after start-up (ignored unless sim.enabled)"
     )
-    human_seed: int = param(0, ge=0, doc="which simulated person (seeded parameters)")
+    human_seed: int = param(0, ge=0, le=2**32 - 1, doc="which simulated person (seeded parameters)",
+                            why="numpy seeds are 32-bit")
     host: str = param(
         "127.0.0.2", min_len=1,
         doc="loopback address the simulated robot serves CAN on (socketcand); the CAN "
         "sections on 'socketcand' name it as their host")
-    can_port: int = param(29536, gt=0, le=65535, doc="its socketcand port (socketcand's default)")
+    can_port: int = param(29536, ge=1, le=65535, doc="its socketcand port (socketcand's default)",
+                          why="a TCP port")
     socket_path: str = param(
         "", doc="the simulation's control socket (`mmctl sim status|push|fault|person`); "
         "'' = next to the daemon's: $RUNTIME_DIRECTORY, $XDG_RUNTIME_DIR or /tmp/mmctl-$UID, "
         "+ mmctl-sim.sock")
     ready_timeout: float = param(
-        60.0, unit="s", gt=0.0, doc="how long `mmctl run` waits for the `mmctl sim` it started")
+        60.0, unit="s", ge=1.0, le=600.0,
+        doc="how long `mmctl run` waits for the `mmctl sim` it started",
+        why="it starts in seconds (a minute on a loaded machine); 10 min is a hang")
 
     def validate(self, path: str, source: str | None) -> None:
         import ipaddress

@@ -8,6 +8,11 @@ or shape is allowed.  :func:`build` walks a mapping against such a class and rai
 Supported annotations: ``float``, ``int``, ``bool``, ``str``, ``Literal[...]``,
 ``tuple[float, ...]`` / ``tuple[int, ...]`` (with ``shape=(n,)`` or ``shape=(n, n)``
 for matrices stored as tuples of tuples), nested section dataclasses and ``X | None``.
+
+Every number has a lower and an upper bound (``ge``/``gt`` and ``le``/``lt``; for a list,
+one bound for all its entries or a tuple of one bound per entry) and a ``why``: the
+physical reason for the range (the hardware's own limit where there is one), which the
+error message repeats.  ``tests/test_config.py`` checks that no number lacks them.
 """
 
 from __future__ import annotations
@@ -23,23 +28,31 @@ from mmctl.errors import ConfigError
 
 _MISSING = dataclasses.MISSING
 
+#: a range bound: one number, or one per list entry, or none
+Bound = float | tuple[float, ...] | None
+
 
 def param(
     default: Any = _MISSING,
     *,
     doc: str = "",
     unit: str = "",
-    ge: float | None = None,
-    gt: float | None = None,
-    le: float | None = None,
-    lt: float | None = None,
+    ge: Bound = None,
+    gt: Bound = None,
+    le: Bound = None,
+    lt: Bound = None,
     shape: tuple[int, ...] | None = None,
     min_len: int | None = None,
+    why: str = "",
 ) -> Any:
-    """Declare a config field: default, documentation, unit and allowed range/shape."""
+    """Declare a config field: default, documentation, unit, allowed range/shape and
+    ``why`` that range (one short sentence; the error message quotes it).
+
+    A bound is a number, or for a list a tuple with one bound per entry."""
     meta = {
         "doc": doc,
         "unit": unit,
+        "why": why,
         "ge": ge,
         "gt": gt,
         "le": le,
@@ -59,12 +72,22 @@ def section(cls: type) -> type:
     return dataclasses.dataclass(frozen=True)(cls)
 
 
+_BOUNDS = ("gt", "ge", "lt", "le")
+
+
 def _range_text(meta: Mapping[str, Any]) -> str:
     parts = []
     for key, sym in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
         if meta.get(key) is not None:
             parts.append(f"{sym} {meta[key]}")
     return " and ".join(parts)
+
+
+def _entry_meta(meta: Mapping[str, Any], index: int) -> Mapping[str, Any]:
+    """``meta`` with per-entry bounds (tuples) narrowed to entry ``index``."""
+    if not any(isinstance(meta.get(k), tuple) for k in _BOUNDS):
+        return meta
+    return {**meta, **{k: meta[k][index] for k in _BOUNDS if isinstance(meta.get(k), tuple)}}
 
 
 def _check_range(path: str, value: float, meta: Mapping[str, Any], source: str | None) -> None:
@@ -78,14 +101,18 @@ def _check_range(path: str, value: float, meta: Mapping[str, Any], source: str |
     )
     if bad:
         unit = f" [{meta['unit']}]" if meta.get("unit") else ""
-        raise ConfigError(path, value, f"must be {_range_text(meta)}{unit}", source)
+        why = f"; {meta['why']}" if meta.get("why") else ""
+        raise ConfigError(path, value, f"must be {_range_text(meta)}{unit}{why}", source)
 
 
 def _scalar(path: str, value: Any, typ: Any, meta: Mapping[str, Any], source: str | None) -> Any:
     if typ is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(path, value, "must be a number", source)
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:  # an integer beyond any double
+            raise ConfigError(path, value, "must be a finite number", source) from None
         _check_range(path, value, meta, source)
         return value
     if typ is int:
@@ -118,7 +145,8 @@ def _tuple(path: str, value: Any, typ: Any, meta: Mapping[str, Any], source: str
         if not ok:
             raise ConfigError(path, value, f"expected a {rows}x{cols} matrix (list of lists)", source)
         return tuple(
-            tuple(_scalar(f"{path}[{i}][{j}]", v, elem, meta, source) for j, v in enumerate(row))
+            tuple(_scalar(f"{path}[{i}][{j}]", v, elem, _entry_meta(meta, j), source)
+                  for j, v in enumerate(row))
             for i, row in enumerate(value)
         )
     if not isinstance(value, (list, tuple)):
@@ -129,7 +157,8 @@ def _tuple(path: str, value: Any, typ: Any, meta: Mapping[str, Any], source: str
     if meta.get("min_len") is not None and len(value) < meta["min_len"]:
         raise ConfigError(path, value, f"expected at least {meta['min_len']} {kind}", source)
     if elem in (float, int, bool, str):
-        return tuple(_scalar(f"{path}[{i}]", v, elem, meta, source) for i, v in enumerate(value))
+        return tuple(_scalar(f"{path}[{i}]", v, elem, _entry_meta(meta, i), source)
+                     for i, v in enumerate(value))
     if dataclasses.is_dataclass(elem):
         return tuple(build(cast(type, elem), v, f"{path}[{i}]", source)
                      for i, v in enumerate(value))

@@ -6,6 +6,7 @@ from typing import Literal
 
 from mmctl.config import can
 from mmctl.config.schema import param, section, sub
+from mmctl.errors import ConfigError
 
 
 @section
@@ -17,13 +18,18 @@ class SensorCanConfig:
     host: str = can.host()
     port: int = can.port()
     bitrate: int = can.bitrate()
-    base_id: int = param(0x20, ge=0, le=0x7F, doc="CAN base id; frame id = (base_id << 4) | opcode")
-    timeout: float = param(0.005, unit="s", gt=0.0, doc="reply timeout of one read")
+    base_id: int = param(0x20, ge=0, le=0x7F, doc="CAN base id; frame id = (base_id << 4) | opcode",
+                         why="(base_id << 4) | opcode is an 11-bit CAN id")
+    timeout: float = param(
+        0.005, unit="s", ge=0.0005, le=0.1, doc="reply timeout of one read",
+        why="the reply's two frames take ~0.3 ms on a 1 Mbit/s bus; the read waits inside "
+        "the cycle, so 100 ms (50 periods at 500 Hz) is the most a cycle can be held")
     connect_timeout: float = param(
-        0.5, unit="s", gt=0.0, doc="reply timeout of the calibration reads at connect"
+        0.5, unit="s", ge=0.01, le=30.0, doc="reply timeout of the calibration reads at connect",
+        why="a sensor answers in ms; one silent for 30 s is not there",
     )
     status_saturation_mask: int = param(
-        0x0006, ge=0, le=0xFFFF,
+        0x0006, ge=0, le=0xFFFF, why="bits of the 16-bit status word",
         doc="status bits meaning gauge saturation (any other set bit is a status fault)",
     )
 
@@ -33,15 +39,23 @@ class SensorRdtConfig:
     """ATI RDT over UDP (Axia80 Ethernet)."""
 
     host: str = param("127.0.0.1", min_len=1)
-    port: int = param(49152, gt=0, le=65535)
-    counts_per_force: float = param(1.0e6, gt=0.0, unit="counts/N")
-    counts_per_torque: float = param(1.0e6, gt=0.0, unit="counts/(N m)")
-    connect_timeout: float = param(0.5, unit="s", gt=0.0, doc="wait for the first record")
+    port: int = param(49152, ge=1, le=65535, why="a UDP port")
+    counts_per_force: float = param(
+        1.0e6, ge=1.0, le=1e9, unit="counts/N",
+        why="int32 counts: from 1 count/N to 1e9 (a 2 N range)")
+    counts_per_torque: float = param(
+        1.0e6, ge=1.0, le=1e9, unit="counts/(N m)",
+        why="int32 counts: from 1 count/N m to 1e9 (a 2 N m range)")
+    connect_timeout: float = param(
+        0.5, unit="s", ge=0.01, le=30.0, doc="wait for the first record",
+        why="a sensor answers in ms; one silent for 30 s is not there")
     status_error_mask: int = param(
-        0x80000000, ge=0, le=0xFFFFFFFF, doc="status bits that are a status fault"
+        0x80000000, ge=0, le=0xFFFFFFFF, doc="status bits that are a status fault",
+        why="bits of the 32-bit RDT status word"
     )
     status_saturation_mask: int = param(
-        0x00020000, ge=0, le=0xFFFFFFFF, doc="status bits meaning gauge saturation"
+        0x00020000, ge=0, le=0xFFFFFFFF, doc="status bits meaning gauge saturation",
+        why="bits of the 32-bit RDT status word"
     )
 
 
@@ -49,29 +63,59 @@ class SensorRdtConfig:
 class WrenchConfig:
     """Processing shared by all sensor transports."""
 
-    tare_samples: int = param(100, gt=0, doc="samples averaged by a software tare")
-    handle_mass: float = param(0.6, unit="kg", ge=0.0, doc="mass below the sensor (handle, peg)")
+    tare_samples: int = param(
+        100, ge=1, le=10_000, doc="samples averaged by a software tare",
+        why="the person lets go during a tare: 10 000 samples is 20 s at 500 Hz")
+    handle_mass: float = param(
+        0.6, unit="kg", ge=0.0, le=12.5, doc="mass below the sensor (handle, peg)",
+        why="the UR10e's payload is 12.5 kg (600 is grams)")
     handle_com: tuple[float, ...] = param(
-        (0.0, 0.0, 0.08), unit="m", shape=(3,), doc="its centre of mass in the sensor frame"
+        (0.0, 0.0, 0.08), unit="m", shape=(3,), ge=-0.5, le=0.5,
+        doc="its centre of mass in the sensor frame",
+        why="a handle within 0.5 m of the sensor (80 is millimetres)",
     )
-    deadband_force: float = param(2.0, unit="N", ge=0.0)
-    deadband_torque: float = param(0.2, unit="N m", ge=0.0)
-    lowpass_cutoff: float = param(20.0, unit="Hz", gt=0.0, doc="first-order low-pass cut-off")
+    deadband_force: float = param(
+        2.0, unit="N", ge=0.0, le=20.0,
+        why="a person guides with 10-15 N: a wider dead band swallows the guidance")
+    deadband_torque: float = param(
+        0.2, unit="N m", ge=0.0, le=2.0,
+        why="a person's guiding torque is ~1 N m: a wider dead band swallows it")
+    lowpass_cutoff: float = param(
+        20.0, unit="Hz", ge=0.1, le=500.0, doc="first-order low-pass cut-off",
+        why="a hand's force changes within 0.1-10 Hz; 500 Hz is the Nyquist rate of a "
+        "1 kHz loop")
     axis_mask: tuple[bool, ...] = param(
         (True, True, True, False, False, False), shape=(6,),
         doc="which wrench axes drive the admittance (paper: orientation held fixed)",
     )
-    force_limit: float = param(150.0, unit="N", gt=0.0, doc="|f| above this is a fault")
-    torque_limit: float = param(15.0, unit="N m", gt=0.0, doc="|t| above this is a fault")
-    stale_timeout: float = param(0.010, unit="s", gt=0.0, doc="no new sample for longer: fault")
+    force_limit: float = param(
+        150.0, unit="N", ge=1.0, le=500.0, doc="|f| above this is a fault",
+        why="the Axia80 M20 senses +-500 N (x, y): a higher limit could never trip")
+    torque_limit: float = param(
+        15.0, unit="N m", ge=0.1, le=20.0, doc="|t| above this is a fault",
+        why="the Axia80 M20 senses +-20 N m: a higher limit could never trip")
+    stale_timeout: float = param(
+        0.010, unit="s", ge=0.001, le=5.0, doc="no new sample for longer: fault",
+        why="the robot follows the last sample until then: 10 ms on the robot, 5 s for "
+        "tests that step the daemon by hand; 10 (10 ms without its unit) is caught")
     range_force: tuple[float, ...] = param(
-        (500.0, 500.0, 900.0), unit="N", shape=(3,), gt=0.0,
+        (500.0, 500.0, 900.0), unit="N", shape=(3,), ge=1.0, le=2000.0,
         doc="sensing range |Fx|, |Fy|, |Fz| (ATI Axia80 M20); beyond it: saturation fault",
+        why="the M20's 500/900 N with room for stronger calibrations (500 000 is mN)",
     )
     range_torque: tuple[float, ...] = param(
-        (20.0, 20.0, 20.0), unit="N m", shape=(3,), gt=0.0,
+        (20.0, 20.0, 20.0), unit="N m", shape=(3,), ge=0.1, le=100.0,
         doc="sensing range |Tx|, |Ty|, |Tz| (ATI Axia80 M20); beyond it: saturation fault",
+        why="the M20's 20 N m with room for stronger calibrations (20 000 is N mm)",
     )
+
+    def validate(self, path: str, source: str | None) -> None:
+        if self.deadband_force >= self.force_limit:
+            raise ConfigError(f"{path}.deadband_force", self.deadband_force,
+                              f"must be < force_limit = {self.force_limit:g} N", source)
+        if self.deadband_torque >= self.torque_limit:
+            raise ConfigError(f"{path}.deadband_torque", self.deadband_torque,
+                              f"must be < torque_limit = {self.torque_limit:g} N m", source)
 
 
 @section

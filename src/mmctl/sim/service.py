@@ -10,10 +10,16 @@ protocol, :mod:`mmctl.runtime.ipc`).  Requests:
 daemon tares); ``press`` (the handle button); ``fault`` (``name``, ``on``); ``log``
 (the fakes' command logs and the sensor's push steps from ``since`` on: what the
 benchmarks read); ``stop``.
+
+Every request is validated as a whole before anything is applied, like the
+configuration: an unknown field, a wrong type (a bool must be a JSON ``true``/``false``,
+a number a finite JSON number) or a value out of range is one error reply naming the
+command, the field, the value and what is allowed, and nothing changes.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import threading
@@ -33,6 +39,83 @@ log = structlog.get_logger("mmctl.sim")
 
 #: What ends `mmctl sim` (stop the fakes, write the logs, remove the socket).
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP, signal.SIGQUIT)
+
+#: Fields of the control protocol itself, in any request (:mod:`mmctl.runtime.ipc`).
+ENVELOPE = frozenset({"cmd", "timeout_s"})
+#: A push per axis at most [N]: beyond the Axia80's largest range (900 N along z).
+MAX_PUSH_FORCE = 1000.0
+#: The longest push [s] (a soak runs for hours with pushes of seconds).
+MAX_PUSH_SECONDS = 3600.0
+#: The longest the person lets go for a tare [s] (:meth:`SimWorld.hold`'s own range).
+MAX_HOLD_SECONDS = 60.0
+#: Each command's fields (besides :data:`ENVELOPE`) and what they take.
+FIELDS: dict[str, dict[str, str]] = {
+    "status": {},
+    "push": {"force": f"[fx, fy, fz] N (world frame, each |f| <= {MAX_PUSH_FORCE:g}) or null "
+                      "to end the push",
+             "seconds": f"how long the push lasts: 0 < s <= {MAX_PUSH_SECONDS:g}, or null "
+                        "(until ended)"},
+    "person": {"on": "true or false", "hold": f"0 <= s <= {MAX_HOLD_SECONDS:g}"},
+    "press": {},
+    "fault": {"name": "one of the known faults (mmctl sim fault --list)",
+              "on": "true or false (default true)"},
+    "log": {"since": "CLOCK_MONOTONIC seconds >= 0 (default 0)"},
+    "stop": {},
+}
+
+
+class BadRequest(MmctlError):
+    """A simulation request with an unknown field, a wrong type or a value out of range:
+    ``<cmd>: <field> = <value>: <what is allowed>``."""
+
+    def __init__(self, cmd: str, field: str, value: Any, allowed: str):
+        self.cmd, self.field, self.value = cmd, field, value
+        super().__init__(f"{cmd}: {field} = {value!r}: {allowed}")
+
+
+def check_fields(cmd: str, req: Mapping[str, Any]) -> None:
+    """Every field of ``req`` is one ``cmd`` takes (or the protocol's own)."""
+    known = FIELDS[cmd]
+    for key in req:
+        if key not in known and key not in ENVELOPE:
+            allowed = ", ".join(known) or "(none)"
+            raise BadRequest(cmd, str(key), req[key], f"unknown field; {cmd} takes: {allowed}")
+
+
+def json_bool(cmd: str, req: Mapping[str, Any], field: str, default: bool) -> bool:
+    """A JSON true/false (never a string, a number or null)."""
+    value = req.get(field, default)
+    if not isinstance(value, bool):
+        raise BadRequest(cmd, field, value, "must be true or false (a JSON boolean)")
+    return value
+
+
+def json_number(cmd: str, field: str, value: Any, lo: float, hi: float, unit: str,
+                lo_open: bool = False) -> float:
+    """A finite JSON number in [lo, hi] (or (lo, hi] with ``lo_open``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise BadRequest(cmd, field, value, f"must be a number [{unit}]")
+    x = float(value)
+    if not math.isfinite(x):
+        raise BadRequest(cmd, field, value, f"must be a finite number [{unit}]")
+    if (x <= lo if lo_open else x < lo) or x > hi:
+        upper = f" and <= {hi:g}" if math.isfinite(hi) else ""
+        raise BadRequest(cmd, field, value,
+                         f"must be {'>' if lo_open else '>='} {lo:g}{upper} [{unit}]")
+    return x
+
+
+def push_force(req: Mapping[str, Any]) -> list[float] | None:
+    """``push``'s ``force``: three numbers [N] or null (required)."""
+    if "force" not in req:
+        raise BadRequest("push", "force", None, "is required: " + FIELDS["push"]["force"])
+    force = req["force"]
+    if force is None:
+        return None
+    if not isinstance(force, list) or len(force) != 3:
+        raise BadRequest("push", "force", force, "must be a list of 3 numbers [N] or null")
+    return [json_number("push", f"force[{i}]", f, -MAX_PUSH_FORCE, MAX_PUSH_FORCE, "N")
+            for i, f in enumerate(force)]
 
 
 class SimService:
@@ -86,8 +169,7 @@ class SimService:
 
     def _command_table(self) -> dict[str, Callable[[Mapping[str, Any]], Any]]:
         return {
-            "status": lambda req: {**self._then_status(), "pid": os.getpid(),
-                                   "config": self.cfg.name, "faults_known": FAULTS},
+            "status": self._cmd_status,
             "push": self._cmd_push,
             "person": self._cmd_person,
             "press": self._cmd_press,
@@ -102,33 +184,51 @@ class SimService:
         return {**st, "person": _person(st)}
 
     def _cmd_press(self, req: Mapping[str, Any]) -> Any:
+        check_fields("press", req)
         self.world.press()
         return self._then_status()
 
     def _cmd_push(self, req: Mapping[str, Any]) -> Any:
-        self.world.set_push(req.get("force"), req.get("seconds"))
+        check_fields("push", req)
+        force = push_force(req)
+        seconds = req.get("seconds")
+        if seconds is not None:
+            if force is None:
+                raise BadRequest("push", "seconds", seconds,
+                                 "must be null when force is null (ending a push)")
+            seconds = json_number("push", "seconds", seconds, 0.0, MAX_PUSH_SECONDS, "s",
+                                  lo_open=True)
+        self.world.set_push(force, seconds)
         return self._then_status()
 
     def _cmd_person(self, req: Mapping[str, Any]) -> Any:
+        check_fields("person", req)
+        on = json_bool("person", req, "on", False) if "on" in req else None
+        hold = (json_number("person", "hold", req["hold"], 0.0, MAX_HOLD_SECONDS, "s")
+                if "hold" in req else None)
         w = self.world
-        if "on" in req:
+        if on is not None:
             w.set_push(None)
-            w.human_on = bool(req["on"]) and self.cfg.sim.human
-        if "hold" in req:
-            hold = req["hold"]
-            if not isinstance(hold, (int, float)) or isinstance(hold, bool):
-                raise MmctlError(f"hold needs seconds (a number), got {hold!r}")
-            w.hold(float(hold))
+            w.human_on = on and self.cfg.sim.human
+        if hold is not None:
+            w.hold(hold)
         return self._then_status()
 
     def _cmd_fault(self, req: Mapping[str, Any]) -> Any:
+        check_fields("fault", req)
         name = req.get("name")
-        if not isinstance(name, str):
-            raise MmctlError(f"fault needs a name; known: {', '.join(FAULTS)}")
-        self.world.inject(name, bool(req.get("on", True)))
+        if not isinstance(name, str) or name not in FAULTS:
+            raise BadRequest("fault", "name", name, f"must be one of: {', '.join(FAULTS)}")
+        self.world.inject(name, json_bool("fault", req, "on", True))
         return self._then_status()
 
+    def _cmd_status(self, req: Mapping[str, Any]) -> Any:
+        check_fields("status", req)
+        return {**self._then_status(), "pid": os.getpid(), "config": self.cfg.name,
+                "faults_known": FAULTS}
+
     def _cmd_stop(self, req: Mapping[str, Any]) -> Any:
+        check_fields("stop", req)
         self.request_stop("requested")
         return {"stopping": True}
 
@@ -137,9 +237,8 @@ class SimService:
         of any process here): UR commands as [seq, kind, received, qd], per drive
         [received, target counts/s], and the sensor's push steps [step, the time of the
         first sample that carried it]."""
-        since = req.get("since", 0.0)
-        if not isinstance(since, (int, float)) or isinstance(since, bool):
-            raise MmctlError(f"log needs 'since' (CLOCK_MONOTONIC seconds), got {since!r}")
+        check_fields("log", req)
+        since = json_number("log", "since", req.get("since", 0.0), 0.0, math.inf, "s")
         w = self.world
         cmds = w.ur.commands()
         ur = [[c.seq, c.kind.value, c.received, None if c.qd is None else list(c.qd)]
