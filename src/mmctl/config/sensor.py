@@ -37,6 +37,12 @@ class SensorRdtConfig:
     counts_per_force: float = param(1.0e6, gt=0.0, unit="counts/N")
     counts_per_torque: float = param(1.0e6, gt=0.0, unit="counts/(N m)")
     connect_timeout: float = param(0.5, unit="s", gt=0.0, doc="wait for the first record")
+    restart_after: float = param(
+        0.1, unit="s", gt=0.0, le=10.0,
+        doc="no record for this long: send the start request again (a rebooted sensor "
+            "streams only after one), then at doubling intervals up to 1 s; the stale "
+            "fault is sensor.wrench.stale_timeout's",
+    )
     status_error_mask: int = param(
         0x80000000, ge=0, le=0xFFFFFFFF, doc="status bits that are a status fault"
     )
