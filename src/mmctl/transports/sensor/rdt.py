@@ -37,7 +37,8 @@ discarded as out-of-order, unless it is the third of a run of consecutive number
 the newest: that record starts the new stream (the run's two before it are not counted
 out-of-order).  So after any restart the client takes records again by the third one at
 the latest; before this, it refused every record until the new stream passed the old
-one's number.  Each reset is logged once (``rdt_sequence_reset``).
+one's number.  Each reset is logged once (``rdt_sequence_reset``; at most one line a
+second, with the count of those left out, should a peer reset the stream constantly).
 
 Re-start on silence: a Net F/T streams only after a start request and forgets it when it
 reboots.  When no record came for ``sensor.rdt.restart_after``, :meth:`read` sends the
@@ -64,6 +65,7 @@ import structlog
 
 from mmctl.config.sensor import SensorRdtConfig
 from mmctl.errors import FaultCause, ProtocolError, SafetyFault, TransportError
+from mmctl.runtime.logging import RateLimiter
 from mmctl.transports.sensor.protocol import SensorStats
 from mmctl.types import Wrench
 
@@ -196,6 +198,7 @@ class RdtForceSensor:
         self._restarts = 0  # start requests re-sent on silence, since connect
         self._attempts = 0  # ... in the current silence
         self._restart_next = 0.0
+        self._log_limit = RateLimiter(1.0)  # rdt_sequence_reset lines
 
     @property
     def link(self) -> str:
@@ -325,10 +328,12 @@ class RdtForceSensor:
                 self._received += 1
         if newest is None:
             return None
-        if tracker.resets != resets:
-            log.warning("rdt_sequence_reset", link=self.link, resets=tracker.resets,
-                        previous=tracker.last_reset[0] if tracker.last_reset else None,
-                        first=tracker.last_reset[1] if tracker.last_reset else None)
+        if tracker.resets != resets and tracker.last_reset is not None:
+            suppressed = self._log_limit.allow("reset")
+            if suppressed is not None:
+                log.warning("rdt_sequence_reset", link=self.link, resets=tracker.resets,
+                            previous=tracker.last_reset[0], first=tracker.last_reset[1],
+                            suppressed=suppressed)
         rec = decode_record(newest)
         t = time.monotonic()
         if self._attempts:
