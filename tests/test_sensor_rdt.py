@@ -25,6 +25,7 @@ from mmctl.transports.sensor.rdt import (
     SequenceTracker,
     decode_record,
     encode_request,
+    restart_interval,
 )
 
 WAIT = 10.0  # generous bound when waiting for an event on a loaded machine
@@ -314,12 +315,18 @@ def test_a_restarted_sequence_is_taken_again(peer: Peer, start: int, taken: int)
 def restart_times(restart_after: float, silent_for: float) -> int:
     """How many start requests the backoff allows within ``silent_for`` of silence: the
     first at ``restart_after``, then after restart_after x 1, 2, 4, ... (at most 1 s)."""
-    t, n, step = restart_after, 0, restart_after
+    t, n = restart_after, 0
     while t <= silent_for:
         n += 1
-        t += min(step, max(restart_after, 1.0))
-        step *= 2
+        t += restart_interval(restart_after, n)
     return n
+
+
+def test_the_restart_interval_doubles_up_to_a_second_and_never_overflows() -> None:
+    assert [restart_interval(0.1, n) for n in range(1, 7)] == pytest.approx(
+        [0.1, 0.2, 0.4, 0.8, 1.0, 1.0])
+    assert restart_interval(0.1, 10**9) == 1.0  # a sensor gone for years
+    assert restart_interval(5.0, 1) == restart_interval(5.0, 10**6) == 5.0
 
 
 def test_a_silent_sensor_is_sent_start_again_rate_limited_and_still_stale(peer: Peer) -> None:

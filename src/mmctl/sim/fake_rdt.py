@@ -5,9 +5,9 @@ encoding: 8-byte requests ``0x1234, command, count`` (0x0002 start streaming ``c
 records, 0 = forever; 0x0000 stop; 0x0042 bias), 36-byte records ``rdt_sequence,
 ft_sequence, status, 6 x int32 counts`` streamed at ``rate_hz`` to the address that
 asked.  ``rdt_sequence`` restarts at 1 with every start command; ``ft_sequence`` counts
-internal samples since power-up.  Counts = round(wrench * counts-per-unit) - bias
-counts.  When the thread is late it skips periods instead of bursting (no sequence gap
-from that).
+the records sent since power-up (the fake's internal sample counter).  Counts =
+round(wrench * counts-per-unit) - bias counts.  When the thread is late it skips periods
+instead of bursting (no sequence gap from that).
 
 :meth:`reboot` is the device's power cycle: streaming stops and stays stopped until a
 new start request (the device does not remember its client), both sequences restart,

@@ -100,6 +100,14 @@ def encode_request(command: int, count: int = 0) -> bytes:
     return REQUEST.pack(RDT_HEADER, command, count)
 
 
+def restart_interval(restart_after: float, attempt: int) -> float:
+    """Seconds from the start request ``attempt`` (1, 2, ...) re-sent on silence to the
+    next one: ``restart_after`` doubled each time, at most 1 s (or ``restart_after``
+    when that is longer)."""
+    cap = max(restart_after, _RESTART_MAX_INTERVAL)
+    return min(restart_after * 2.0 ** min(max(attempt - 1, 0), 64), cap)
+
+
 class RdtRecord(NamedTuple):
     """One decoded RDT record; counts: (Fx, Fy, Fz, Tx, Ty, Tz) [counts]."""
 
@@ -291,8 +299,7 @@ class RdtForceSensor:
         sensor is the stale fault's, reported by the read)."""
         self._restarts += 1
         self._attempts = n = self._attempts + 1
-        self._restart_next = now + min(self._restart_after * 2.0 ** (n - 1),
-                                       max(self._restart_after, _RESTART_MAX_INTERVAL))
+        self._restart_next = now + restart_interval(self._restart_after, n)
         error = None
         try:
             self._sock.send(encode_request(CMD_START))  # type: ignore[union-attr]
