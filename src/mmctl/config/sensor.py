@@ -49,6 +49,12 @@ class SensorRdtConfig:
     connect_timeout: float = param(
         0.5, unit="s", ge=0.01, le=30.0, doc="wait for the first record",
         why="a sensor answers in ms; one silent for 30 s is not there")
+    restart_after: float = param(
+        0.1, unit="s", ge=0.005, le=10.0,
+        doc="no record for this long: send the start request again (a rebooted sensor "
+            "streams only after one), then at doubling intervals up to 1 s; the stale "
+            "fault is sensor.wrench.stale_timeout's",
+        why="from a few RDT periods to 10 s (a sensor's reboot takes seconds)")
     status_error_mask: int = param(
         0x80000000, ge=0, le=0xFFFFFFFF, doc="status bits that are a status fault",
         why="bits of the 32-bit RDT status word"

@@ -5,8 +5,15 @@ encoding: 8-byte requests ``0x1234, command, count`` (0x0002 start streaming ``c
 records, 0 = forever; 0x0000 stop; 0x0042 bias), 36-byte records ``rdt_sequence,
 ft_sequence, status, 6 x int32 counts`` streamed at ``rate_hz`` to the address that
 asked.  ``rdt_sequence`` restarts at 1 with every start command; ``ft_sequence`` counts
-internal samples.  Counts = round(wrench * counts-per-unit) - bias counts.  When the
-thread is late it skips periods instead of bursting (no sequence gap from that).
+the records sent since power-up (the fake's internal sample counter).  Counts =
+round(wrench * counts-per-unit) - bias counts.  When the thread is late it skips periods
+instead of bursting (no sequence gap from that).
+
+:meth:`reboot` is the device's power cycle: streaming stops and stays stopped until a
+new start request (the device does not remember its client), both sequences restart,
+the bias is cleared, and for ``down_for`` seconds the device is booting and ignores
+every request.  Counters for tests: ``starts`` (start requests obeyed), ``reboots``,
+``ignored_while_down``.
 
 Fault injection (plain attributes read by the thread): ``status`` (sent in every
 record), ``silent`` (send nothing, sequence frozen), ``garbage`` (13-byte datagrams
@@ -77,6 +84,11 @@ class FakeRdtServer:
         self.records_sent = 0
         self.bias_commands = 0
         self.bad_requests = 0
+        self.starts = 0
+        self.reboots = 0
+        self.ignored_while_down = 0
+        self._lock = threading.Lock()  # the thread's state against reboot()
+        self._down_until = 0.0
         self.error: BaseException | None = None
         self._bias = np.zeros(6, dtype=np.int64)
         self._sock: socket.socket | None = None
@@ -134,6 +146,20 @@ class FakeRdtServer:
         if self.error is not None:
             raise RuntimeError(f"fake RDT server failed: {self.error!r}") from self.error
 
+    def reboot(self, down_for: float = 0.0) -> None:
+        """Power-cycle the sensor (see module doc): from now on nothing is streamed until
+        a start request arrives after ``down_for`` seconds [s]."""
+        with self._lock:
+            self._client = None
+            self._remaining = None
+            self._seq = 0
+            self._ft_seq = 0
+            self._held = None
+            self._bias = np.zeros(6, dtype=np.int64)
+            self._down_until = time.monotonic() + down_for
+            self.reboots += 1
+        log.info("fake_rdt_rebooted", port=self.port, down_for=down_for)
+
     def __enter__(self) -> Self:
         return self.start()
 
@@ -152,12 +178,13 @@ class FakeRdtServer:
                 now = time.monotonic()
                 timeout = max(0.0, next_t - now) if self._client is not None else 0.05
                 readable, _, _ = select.select([sock], [], [], min(timeout, 0.05))
-                if readable:
-                    next_t = self._serve_requests(sock, next_t)
-                now = time.monotonic()
-                if self._client is not None and now >= next_t:
-                    next_t += self.period * (math.floor((now - next_t) / self.period) + 1)
-                    self._emit(sock)
+                with self._lock:
+                    if readable:
+                        next_t = self._serve_requests(sock, next_t)
+                    now = time.monotonic()
+                    if self._client is not None and now >= next_t:
+                        next_t += self.period * (math.floor((now - next_t) / self.period) + 1)
+                        self._emit(sock)
         except Exception as exc:  # noqa: BLE001 - stored, re-raised by stop()/check()
             self.error = exc
             log.error("fake_rdt_failed", port=self.port, error=repr(exc))
@@ -168,6 +195,9 @@ class FakeRdtServer:
                 data, addr = sock.recvfrom(64)
             except BlockingIOError:
                 return next_t
+            if time.monotonic() < self._down_until:  # booting: nothing listens yet
+                self.ignored_while_down += 1
+                continue
             if len(data) != _REQUEST.size:
                 self.bad_requests += 1
                 continue
@@ -175,6 +205,7 @@ class FakeRdtServer:
             if header != 0x1234:
                 self.bad_requests += 1
             elif command == 0x0002:
+                self.starts += 1
                 self._client = addr
                 self._remaining = count or None
                 self._seq = 0

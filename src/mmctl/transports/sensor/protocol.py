@@ -32,12 +32,16 @@ class SensorStats(NamedTuple):
 
     received: fresh samples decoded; lost: CAN requests that got no reply in time, or
     RDT sequence numbers skipped and not filled by a late record; out_of_order: RDT
-    records older than the newest one (discarded; always 0 on CAN).
+    records older than the newest one (discarded; always 0 on CAN); resets: RDT
+    sequence restarts taken as a new stream (0 on CAN); restarts: RDT start requests
+    re-sent because the stream fell silent (0 on CAN).
     """
 
     received: int
     lost: int
     out_of_order: int
+    resets: int = 0
+    restarts: int = 0
 
 
 @runtime_checkable

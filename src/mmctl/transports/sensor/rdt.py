@@ -25,8 +25,29 @@ older than ``sensor.wrench.stale_timeout`` -> ``SafetyFault(SENSOR_STALE)``.
 
 Sequence counting (:class:`SequenceTracker`): the RDT sequence is uint32 (wraps).  A
 record ahead of the newest by ``d`` counts ``d - 1`` lost and remembers the missing
-numbers (the last 256); a record at or behind the newest counts one out-of-order, is
-discarded, and if it fills a remembered gap the lost count goes back down by one.
+numbers (the last 256); a record that fills a remembered gap is late: it counts one
+out-of-order, is discarded, and the lost count goes back down by one.
+
+Sequence resets: the device numbers the records of each stream from the start, so every
+start request (ours after a silence, another client's, the device's own reboot) restarts
+``rdt_sequence``.  A record at or behind the newest that fills no gap is a new stream,
+accepted at once and counted in ``resets``, when it is more than 256 behind (no network
+reorders that far) or numbered 0 or 1 (a stream's first record); otherwise it is
+discarded as out-of-order, unless it is the third of a run of consecutive numbers behind
+the newest: that record starts the new stream (the run's two before it are not counted
+out-of-order).  So after any restart the client takes records again by the third one at
+the latest; before this, it refused every record until the new stream passed the old
+one's number.  Each reset is logged once (``rdt_sequence_reset``; at most one line a
+second, with the count of those left out, should a peer reset the stream constantly).
+
+Re-start on silence: a Net F/T streams only after a start request and forgets it when it
+reboots.  When no record came for ``sensor.rdt.restart_after``, :meth:`read` sends the
+start request again (``restarts`` in :meth:`RdtForceSensor.stats`), then at doubling
+intervals up to 1 s while the silence lasts; the attempts 1, 2, 4, 8, ... are logged
+(``rdt_restart_sent``), the first record after them too (``rdt_stream_recovered``).  The
+transport only recovers the stream: every read of a silent sensor past
+``stale_timeout`` still raises ``SENSOR_STALE``, and the daemon keeps its fault latched
+until the operator enables again.
 """
 
 from __future__ import annotations
@@ -44,6 +65,7 @@ import structlog
 
 from mmctl.config.sensor import SensorRdtConfig
 from mmctl.errors import FaultCause, ProtocolError, SafetyFault, TransportError
+from mmctl.runtime.logging import RateLimiter
 from mmctl.transports.sensor.protocol import SensorStats
 from mmctl.types import Wrench
 
@@ -63,11 +85,27 @@ _SEQ = struct.Struct(">I")
 _WRAP = 1 << 32
 _HALF = 1 << 31
 _MISSING_WINDOW = 256
+#: a record further behind the newest than this (and filling no gap) starts a new stream
+_REORDER_WINDOW = _MISSING_WINDOW
+#: a record numbered at most this, behind the newest and filling no gap: a new stream
+_RESTART_NEAR = 1
+#: this many consecutive numbers behind the newest (filling no gap): a new stream
+_RESET_RUN = 3
+#: the longest interval between start requests re-sent while the sensor is silent [s]
+_RESTART_MAX_INTERVAL = 1.0
 
 
 def encode_request(command: int, count: int = 0) -> bytes:
     """The 8-byte RDT request."""
     return REQUEST.pack(RDT_HEADER, command, count)
+
+
+def restart_interval(restart_after: float, attempt: int) -> float:
+    """Seconds from the start request ``attempt`` (1, 2, ...) re-sent on silence to the
+    next one: ``restart_after`` doubled each time, at most 1 s (or ``restart_after``
+    when that is longer)."""
+    cap = max(restart_after, _RESTART_MAX_INTERVAL)
+    return min(restart_after * 2.0 ** min(max(attempt - 1, 0), 64), cap)
 
 
 class RdtRecord(NamedTuple):
@@ -88,33 +126,63 @@ def decode_record(data: bytes) -> RdtRecord:
 
 
 class SequenceTracker:
-    """Lost / out-of-order counters from a wrapping uint32 sequence (see module doc)."""
+    """Lost / out-of-order / reset counters from a wrapping uint32 sequence (see module
+    doc).  ``last_reset``: (newest before, first of the new stream) of the latest reset."""
 
     def __init__(self) -> None:
         self.newest: int | None = None
         self.lost = 0
         self.out_of_order = 0
+        self.resets = 0
+        self.last_reset: tuple[int, int] | None = None
         self._missing: OrderedDict[int, None] = OrderedDict()
+        self._run_last: int | None = None
+        self._run_len = 0
 
     def observe(self, seq: int) -> bool:
-        """Account for ``seq``; True when it is newer than every record seen so far."""
-        if self.newest is None:
+        """Account for ``seq``; True when it is the newest record now (newer than every
+        record seen so far, or the first of a new stream)."""
+        newest = self.newest
+        if newest is None:
             self.newest = seq
             return True
-        d = (seq - self.newest) % _WRAP
+        d = (seq - newest) % _WRAP
         if 0 < d < _HALF:
             self.lost += d - 1
             for k in range(max(1, d - _MISSING_WINDOW), d):
-                self._missing[(self.newest + k) % _WRAP] = None
+                self._missing[(newest + k) % _WRAP] = None
             while len(self._missing) > _MISSING_WINDOW:
                 self._missing.popitem(last=False)
             self.newest = seq
+            self._run_last = None
             return True
-        self.out_of_order += 1
-        if seq in self._missing:
+        if seq in self._missing:  # late: fills its gap
             del self._missing[seq]
             self.lost -= 1
+            self.out_of_order += 1
+            return False
+        behind = (newest - seq) % _WRAP  # 0: the newest again
+        if behind > _REORDER_WINDOW or (seq <= _RESTART_NEAR and behind > 0):
+            return self._reset(seq)
+        if self._run_last is not None and (seq - self._run_last) % _WRAP == 1:
+            self._run_len += 1
+        else:
+            self._run_len = 1
+        self._run_last = seq
+        if self._run_len >= _RESET_RUN:
+            self.out_of_order -= self._run_len - 1  # they were a new stream, not late
+            return self._reset(seq)
+        self.out_of_order += 1
         return False
+
+    def _reset(self, seq: int) -> bool:
+        assert self.newest is not None
+        self.last_reset = (self.newest, seq)
+        self.resets += 1
+        self.newest = seq
+        self._missing.clear()
+        self._run_last = None
+        return True
 
 
 class RdtForceSensor:
@@ -134,6 +202,11 @@ class RdtForceSensor:
         self._received = 0
         self._last: Wrench | None = None
         self._last_fresh = 0.0
+        self._restart_after = cfg.restart_after
+        self._restarts = 0  # start requests re-sent on silence, since connect
+        self._attempts = 0  # ... in the current silence
+        self._restart_next = 0.0
+        self._log_limit = RateLimiter(1.0)  # rdt_sequence_reset lines
 
     @property
     def link(self) -> str:
@@ -160,6 +233,8 @@ class RdtForceSensor:
             self._tracker = SequenceTracker()
             self._received = 0
             self._last = None
+            self._restarts = self._attempts = 0
+            self._restart_next = 0.0
             self._send(CMD_START)
             self._wait_records(1, cfg.connect_timeout, resend=CMD_START)
         except BaseException:
@@ -196,7 +271,10 @@ class RdtForceSensor:
             raise TransportError(f"RDT F/T sensor {self.link} is not connected")
         fresh = self._drain()
         if fresh is None:
-            age = time.monotonic() - self._last_fresh
+            now = time.monotonic()
+            age = now - self._last_fresh
+            if age > self._restart_after and now >= self._restart_next:
+                self._restart(now, age)
             if age > self._stale or self._last is None:
                 raise SafetyFault(FaultCause.SENSOR_STALE, age_ms=round(age * 1e3, 2),
                                   lost=self._tracker.lost, link=self.link)
@@ -204,8 +282,9 @@ class RdtForceSensor:
         return fresh
 
     def stats(self) -> SensorStats:
-        """Fresh records and the sequence counters since connect."""
-        return SensorStats(self._received, self._tracker.lost, self._tracker.out_of_order)
+        """Fresh records, the sequence counters and the re-sent starts since connect."""
+        t = self._tracker
+        return SensorStats(self._received, t.lost, t.out_of_order, t.resets, self._restarts)
 
     # -- internals ---------------------------------------------------------------------
 
@@ -215,6 +294,21 @@ class RdtForceSensor:
         except OSError as exc:
             raise TransportError(f"cannot send to {self.link}: {exc}") from exc
 
+    def _restart(self, now: float, age: float) -> None:
+        """The stream fell silent: send the start request again (never raises: a silent
+        sensor is the stale fault's, reported by the read)."""
+        self._restarts += 1
+        self._attempts = n = self._attempts + 1
+        self._restart_next = now + restart_interval(self._restart_after, n)
+        error = None
+        try:
+            self._sock.send(encode_request(CMD_START))  # type: ignore[union-attr]
+        except OSError as exc:  # e.g. refused while the sensor reboots: try again later
+            error = str(exc)
+        if n & (n - 1) == 0:  # attempts 1, 2, 4, 8, ...: a long outage logs little
+            log.warning("rdt_restart_sent", link=self.link, silent_ms=round(age * 1e3, 1),
+                        attempt=n, error=error)
+
     def _drain(self) -> Wrench | None:
         """Read every queued datagram; the newest in-order record as a Wrench, or None."""
         sock = self._sock
@@ -222,6 +316,7 @@ class RdtForceSensor:
         tracker = self._tracker
         newest: bytes | None = None
         status_or = 0
+        resets = tracker.resets
         while True:
             try:
                 n = sock.recv_into(buf)  # type: ignore[union-attr]
@@ -240,8 +335,19 @@ class RdtForceSensor:
                 self._received += 1
         if newest is None:
             return None
+        if tracker.resets != resets and tracker.last_reset is not None:
+            suppressed = self._log_limit.allow("reset")
+            if suppressed is not None:
+                log.warning("rdt_sequence_reset", link=self.link, resets=tracker.resets,
+                            previous=tracker.last_reset[0], first=tracker.last_reset[1],
+                            suppressed=suppressed)
         rec = decode_record(newest)
         t = time.monotonic()
+        if self._attempts:
+            log.info("rdt_stream_recovered", link=self.link, attempts=self._attempts,
+                     silent_ms=round((t - self._last_fresh) * 1e3, 1))
+            self._attempts = 0
+            self._restart_next = 0.0
         cfg = self._cfg
         if status_or & cfg.status_saturation_mask:
             raise SafetyFault(FaultCause.SENSOR_SATURATION, status=hex(status_or))
