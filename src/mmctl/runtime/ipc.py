@@ -17,10 +17,13 @@ block (``enable`` waits for the loop) run on a few worker threads, ``urgent`` on
 (``stop``, ``disable``) on one of their own, and non-blocking ``inline`` ones (the
 daemon's ``status``, a snapshot rebuilt at most every 100 ms) on the selector thread.
 
-* At most ``max_connections`` (64) connections: at the cap a new connection evicts
-  the one idle the longest (it gets one error line); when every connection has a
-  request in flight, new ones wait in the listen backlog (512) until one ends, and a
-  client finding the backlog full retries within its timeout.
+* At most ``max_connections`` (64) connections: at the cap a new connection evicts an
+  idle one (no request unanswered; of the client process holding the most
+  connections, the one idle the longest), which gets one error line marked
+  ``"evicted": true`` (:class:`ControlClient` then connects again and sends its
+  request, which the daemon had not read); when every connection has a request in
+  flight, new ones wait in the listen backlog (512) until one ends, and a client
+  finding the backlog full retries within its timeout.
 * A connection is dropped after ``idle_timeout`` (10 s) without a complete request
   line (idle, half-sent, or not reading its reply), with one error line.
 * Rates: each client process (by peer pid) has a token bucket (50 requests/s, burst
@@ -432,8 +435,10 @@ class ControlServer:
     def _accept(self) -> None:
         assert self._sock is not None
         lim = self.limits
-        for _ in range(64):  # then let the others have their turn
+        for i in range(64):  # then let the others have their turn
             now = time.monotonic()
+            if len(self._conns) >= lim.max_connections and i > 0:
+                return  # (known to wait: only the first; the selector says if more do)
             if len(self._conns) >= lim.max_connections and not self._evict("cap"):
                 self._listen(False)  # every connection busy: new ones wait in the backlog
                 self._accept_at = math.inf
@@ -448,22 +453,28 @@ class ControlServer:
                 self._total.tokens += 1.0
                 return
             except OSError as exc:
-                self._accept_failed(exc, now)
+                self._total.tokens += 1.0
+                if self._accept_failed(exc, now):
+                    continue
                 return
             self._admit(sock, now)
 
-    def _accept_failed(self, exc: OSError, now: float) -> None:
+    def _accept_failed(self, exc: OSError, now: float) -> bool:
+        """Log (rate-limited) and recover; True: accept again at once."""
         self.counters["accept_errors"] += 1
         if exc.errno in _ACCEPT_IGNORED:
-            return
+            return False
         transient = exc.errno in _ACCEPT_TRANSIENT
+        freed = exc.errno in (errno.EMFILE, errno.ENFILE) and self._evict("fd_limit")
         if (n := self._limiter.allow(f"accept{exc.errno}")) is not None:
             log.error("ipc_accept_failed", error=str(exc), suppressed=n, connections=len(
-                self._conns), action="backing off, then accepting again")
-        if transient:
-            self._evict("fd_limit")  # free a descriptor for the next client
+                self._conns), action="closed the longest-idle connection" if freed else
+                "backing off, then accepting again")
+        if freed:
+            return True  # a descriptor is free for the next client
         self._listen(False)
         self._accept_at = now + (_ACCEPT_BACKOFF if transient else 10 * _ACCEPT_BACKOFF)
+        return False
 
     def _admit(self, sock: socket.socket, now: float) -> None:
         try:
@@ -487,18 +498,25 @@ class ControlServer:
 
     def _evict(self, why: str) -> bool:
         """Close the connection idle the longest (none with a request in flight)."""
-        idle = [c for c in self._conns.values() if not c.busy]
+        idle = [c for c in self._conns.values() if self._evictable(c)]
         if not idle:
             return False
-        victim = min(idle, key=lambda c: c.last)
+        per_pid = collections.Counter(c.peer.pid for c in self._conns.values())
+        # the client holding the most connections first, its longest idle one
+        victim = max(idle, key=lambda c: (per_pid[c.peer.pid], -c.last))
         self.counters["evicted"] += 1
         if (n := self._limiter.allow(f"evict-{why}")) is not None:
             log.warning("ipc_connection_evicted", why=why, pid=victim.peer.pid,
                         connections=len(self._conns), suppressed=n)
-        _send_now(victim.sock, {"ok": False, "error": f"closed by the daemon: too many "
-                                f"connections ({why}); this one was idle the longest"})
+        _send_now(victim.sock, {"ok": False, "evicted": True, "error": f"closed by the "
+                                f"daemon: too many connections ({why}); this one was idle"})
         self._drop(victim)
         return True
+
+    @staticmethod
+    def _evictable(conn: _Conn) -> bool:
+        """Nothing asked and unanswered: no request in flight, none complete and waiting."""
+        return not conn.busy and b"\n" not in conn.inbuf
 
     def _drop(self, conn: _Conn) -> None:
         if not self._alive(conn):
@@ -636,8 +654,10 @@ class ControlServer:
                 throttled = self._conns.get(fd)
                 if throttled is not None:
                     self._advance(throttled)
-        if not self._listening and self._accept_at <= now:
-            self._listen(True)
+        if not self._listening and (self._accept_at <= now or (
+                self._accept_at == math.inf
+                and any(self._evictable(c) for c in self._conns.values()))):
+            self._listen(True)  # (at the cap: one became idle, a new one may evict it)
 
     def _sweep(self, now: float) -> None:
         """Drop connections idle (or half-sent, or not reading their reply) too long;
@@ -857,7 +877,10 @@ class ControlClient:
             self.connect()
         assert self._sock is not None
         try:
-            self._sock.sendall(line if line.endswith(b"\n") else line + b"\n")
+            try:
+                self._sock.sendall(line if line.endswith(b"\n") else line + b"\n")
+            except (BrokenPipeError, ConnectionResetError):
+                pass  # closed before our request: its last line (if any) says why
             reply = self._rfile.readline(self.max_reply + 1)
         except TimeoutError:
             raise IpcError(f"the daemon on {self.path} did not answer within "
@@ -878,7 +901,16 @@ class ControlClient:
         """One request; returns ``result`` or raises :class:`IpcError` with the daemon's error."""
         # timeout_s: the daemon finishes (or abandons) the command within this client's
         # patience, so a reply that never arrives never means "done later"
-        reply = self.raw(json.dumps({"cmd": cmd, "timeout_s": self.timeout, **args}).encode())
+        line = json.dumps({"cmd": cmd, "timeout_s": self.timeout, **args}).encode()
+        deadline = time.monotonic() + self.timeout
+        reply = self.raw(line)
+        while reply.get("evicted") and time.monotonic() < deadline:
+            # closed at the daemon's connection cap before our request was read (never
+            # after: then it is answered), so sending it again is safe
+            self.close()
+            time.sleep(0.01)
+            self.connect()
+            reply = self.raw(line)
         if not reply.get("ok"):
             raise IpcError(str(reply.get("error", "unknown error")))
         return reply.get("result")
