@@ -397,7 +397,7 @@ class ControlServer:
                             self._drain_wake()
                         elif key.data == "listen":
                             self._accept()
-                        else:
+                        elif self._alive(key.data):  # (not closed earlier in this batch)
                             self._io(key.data, mask)
                     self._finish_done()
                     now = time.monotonic()
