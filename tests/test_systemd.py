@@ -37,3 +37,6 @@ def test_unit_declares_the_notify_watchdog_and_rt_contract() -> None:
     assert {"AF_UNIX", "AF_CAN", "AF_NETLINK", "AF_INET"} <= set(families)
     assert "CAP_SYS_NICE" in svc["AmbientCapabilities"] and int(svc["LimitRTPRIO"]) >= 80
     assert "mmctl run" in svc["ExecStart"]
+    # fd exhaustion must not end the control socket (issue 17): a limit well above the
+    # daemon's descriptors and its connection cap
+    assert int(svc["LimitNOFILE"]) >= 1024

@@ -74,6 +74,12 @@ STOP_SIGNALS = tuple(getattr(signal, name) for name in (
     "SIGTERM", "SIGINT", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM",
     "SIGXCPU", "SIGXFSZ", "SIGPWR", "SIGVTALRM") if hasattr(signal, name))
 
+#: [s] the longest a control-socket ``status`` reply is older than the daemon's state
+#: (:meth:`Daemon.status_snapshot`): a flood of status requests costs at most ten
+#: rebuilds a second
+STATUS_MAX_AGE = 0.1
+
+
 class StartAborted(Exception):
     """A stop request arrived while :meth:`Daemon.open` was still starting."""
 
@@ -121,8 +127,13 @@ class Daemon(OperatorCommands, CycleDriver):
             wait=loop_wait,
         )
         self.period = 1.0 / cfg.loop.rate_hz
-        self.server = (ControlServer(socket_path, self.handle, cfg.daemon.socket_mode)
+        # status: a snapshot (inline, on the socket's selector thread); stop and disable
+        # never queue behind other clients' requests (see mmctl.runtime.ipc)
+        self.server = (ControlServer(socket_path, self.handle, cfg.daemon.socket_mode,
+                                     inline=("status",), urgent=("stop", "disable"))
                        if socket_path is not None else None)
+        self._snapshot: tuple[float, tuple[Any, ...], dict[str, Any]] | None = None
+        self._snapshot_lock = threading.Lock()
         self._commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = (
             queue.SimpleQueue())
         self._stop_requested = threading.Event()
@@ -323,6 +334,21 @@ class Daemon(OperatorCommands, CycleDriver):
         if text != self._status_text:
             self._status_text = text
             self.notifier.status(text)
+
+    def status_snapshot(self) -> dict[str, Any]:
+        """The control socket's ``status``: :meth:`status`, rebuilt at most every
+        :data:`STATUS_MAX_AGE` however many clients ask, and at once when the safety
+        state, the fault, the conditions' count, the mode or the tare changed (so a
+        status right after a command shows its effect).  The loop's state is read, not
+        locked; the dict returned is never changed afterwards (a new one each rebuild)."""
+        s, core = self.safety, self.core
+        key = (s.state, s.latched, len(s.active), core.mode, core.switch, core.taring)
+        with self._snapshot_lock:
+            snap = self._snapshot
+            now = time.monotonic()
+            if snap is None or now - snap[0] > STATUS_MAX_AGE or snap[1] != key:
+                snap = self._snapshot = (now, key, self.status())
+        return snap[2]
 
     def status(self) -> dict[str, Any]:
         """Plain-JSON snapshot for ``mmctl status`` (any thread)."""

@@ -80,7 +80,7 @@ class OperatorCommands(_Parts):
     def _command_table(self) -> dict[str, Callable[[Mapping[str, Any]], Any]]:
         """The control socket's commands: name -> handler of the request."""
         return {
-            "status": lambda req: self.status(),
+            "status": lambda req: self.status_snapshot(),
             "enable": lambda req: self._enable_request(
                 _budget(req, self.cfg.daemon.command_timeout)),
             "disable": lambda req: self._on_loop(self._disable),

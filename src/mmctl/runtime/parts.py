@@ -65,6 +65,9 @@ class DaemonParts:
     def status(self) -> dict[str, Any]:
         raise NotImplementedError
 
+    def status_snapshot(self) -> dict[str, Any]:
+        raise NotImplementedError
+
     def _update_status(self) -> None: ...
 
     def request_stop(self, reason: str = "requested") -> None: ...
