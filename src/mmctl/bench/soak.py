@@ -95,6 +95,8 @@ LOAD_PROOF: dict[str, Any] = {
     "loop": {"max_consecutive_misses": 1000},
 }
 
+_MAX_KINDS = 30  # distinct error kinds counted apart (the rest: "other")
+
 _PORTS = (29999, 30003, 30004, 29536)  # the fake UR's and the simulation's socketcand
 
 
@@ -345,6 +347,8 @@ def verdict(report: dict[str, Any]) -> tuple[bool, list[str]]:
     if faults["enabled_while_present"]:
         why.append(f"{faults['enabled_while_present']} enable(s) accepted while the "
                    "injected fault was present")
+    if report.get("soak_errors"):
+        why.append("the soak's own schedule failed (see unexpected_events: soak_error)")
     if report.get("daemon_exit") is not None and not report.get("interrupted"):
         why.append(f"the daemon exited during the run (status {report['daemon_exit']})")
     return not why, why
@@ -542,7 +546,10 @@ class Soak:
             if simst.get("pid"):
                 self.sim_pid = int(simst["pid"])
         except IpcError as exc:
-            self.status_errors[_kind(exc)] += 1
+            kind = _kind(exc)
+            if kind not in self.status_errors and len(self.status_errors) >= _MAX_KINDS:
+                kind = "other"
+            self.status_errors[kind] += 1
             s["state"] = None
         s["quiet"] = quiet and self._quiet()
         for key in ("rss_mb", "sim_rss_mb", "soak_rss_mb"):
@@ -659,8 +666,12 @@ class Soak:
                 request(self.sock, "status", timeout=10.0)
                 results[i] = "ok"
             except Exception as exc:  # noqa: BLE001 -- counted, never fatal
-                results[i] = _kind(exc)
-                self.flood_error_examples.setdefault(results[i] or "", str(exc)[:200])
+                kind = _kind(exc)
+                if kind not in self.flood_error_examples:
+                    if len(self.flood_error_examples) >= _MAX_KINDS:
+                        kind = "other"
+                    self.flood_error_examples.setdefault(kind, str(exc)[:200])
+                results[i] = kind
 
         self._busy_enter()
         try:
@@ -845,6 +856,7 @@ class Soak:
             "pushes": self.counts["pushes"],
             "person_off": self.counts["person_off"],
             "status_errors": dict(self.status_errors),
+            "soak_errors": self.counts["chaos_errors"],
             "notes": list(self.notes),
             "series": self.samples,
         }
