@@ -39,6 +39,7 @@ GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
     "bench": ("benchmarks that print figures", [
         ("idk", "mmctl.bench.idk", "time the IDK strategies vs the paper's explicit inverse"),
         ("loop", "mmctl.bench.loop", "500 Hz loop timing vs a time.sleep loop"),
+        ("soak", "mmctl.bench.soak", "soak the daemon: pushes, floods, faults; growth and verdict"),
     ]),
     "probe": ("bring-up probes for one device", [
         ("sensor", "mmctl.commands.probe_sensor", "read the force/torque sensor, print the wrench"),

@@ -71,6 +71,8 @@ class CycleDriver(_Parts):
                 fut.set_result(fn())
             except Exception as exc:  # noqa: BLE001 -- handed to the waiting client
                 fut.set_exception(exc)
+            finally:  # the exception's traceback holds this frame: no cycle through it
+                del fut
 
     def _read(self, name: str, fn: Callable[[], Any],
               conditions: dict[FaultCause, dict[str, Any]]) -> Any:

@@ -62,12 +62,18 @@ class OperatorCommands(_Parts):
             return fn()
         fut = self.submit(fn)
         try:
-            return fut.result(self.cfg.daemon.command_timeout if timeout is None else timeout)
-        except FutureTimeout:
-            if fut.cancel():
-                raise IpcError("the control loop did not take the command in time "
-                               "(not applied)") from None
-        return fut.result()  # started: ends within its cycle
+            try:
+                return fut.result(self.cfg.daemon.command_timeout if timeout is None else timeout)
+            except FutureTimeout:
+                if fut.cancel():
+                    raise IpcError("the control loop did not take the command in time "
+                                   "(not applied)") from None
+            return fut.result()  # started: ends within its cycle
+        finally:
+            # the future holds the command's exception, whose traceback holds this frame:
+            # without this, that cycle keeps the caller's frames (a control connection's
+            # socket among them) until a full garbage collection
+            del fut
 
     def handle(self, req: Mapping[str, Any], peer: Peer | None) -> Any:
         """Dispatch one control-socket request (see :mod:`mmctl.runtime.ipc`)."""
