@@ -321,3 +321,12 @@ def test_hostile_files_are_one_config_error(tmp_path: Path, content: bytes, frag
     with pytest.raises(ConfigError) as info:
         load_config(f)
     assert fragment in str(info.value)
+
+
+def test_the_configuration_reference_is_current() -> None:
+    """docs/configuration.md is generated from the schema: regenerate it with
+    ``python -c "from mmctl.config import reference; print(reference(), end='')" >
+    docs/configuration.md``."""
+    from mmctl.config import reference
+
+    assert (ROOT / "docs" / "configuration.md").read_text() == reference()

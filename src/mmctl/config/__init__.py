@@ -25,7 +25,7 @@ from mmctl.config.runtime import (
     SimConfig,
     TelemetryConfig,
 )
-from mmctl.config.schema import build, param, section, sub, to_dict
+from mmctl.config.schema import build, param, ranges, section, sub, to_dict
 from mmctl.config.sensor import SensorCanConfig, SensorConfig
 from mmctl.errors import ConfigError
 
@@ -113,6 +113,41 @@ class Config:
                                   "must be 'socketcand' (the simulated robot's own process) "
                                   "or 'virtual' (fakes in the same process: tests) while "
                                   "sim.enabled is true", source)
+
+
+_REFERENCE_HEAD = """# Configuration: the range of every number
+
+Generated from the schema (`src/mmctl/config/*.py`, `param(..., why=...)`) by
+`mmctl.config.reference()`; `tests/test_config.py` keeps this file equal to it.  A value
+outside its range is rejected at start (`mmctl check-config FILE`) with one line naming
+the key, the value, the range and its reason.  Upper bounds are the hardware's own
+limits where there are some (SPEC section 2); elsewhere they catch a unit slip (a time
+in ms written as s, a length in mm written as m).  A key with `[i]` is a list: the range
+holds for each entry (a tuple: one bound per entry).
+
+Checks between keys: `loop.spin_margin` < the loop period 1 / `loop.rate_hz`;
+`arm.watchdog_min_frequency` <= `loop.rate_hz` / 2; `loop.base_divider` / `loop.rate_hz`
+<= `base.command_watchdog` / 2; `sensor.wrench.stale_timeout` > the loop period;
+`base.canopen.heartbeat_timeout` > `base.canopen.heartbeat_period`;
+`base.command_watchdog` >= 2 x `base.canopen.heartbeat_period`; the dead bands below
+their limits; a tare (`sensor.wrench.tare_samples` / `loop.rate_hz`) of at most 20 s;
+wheel signs -1 or 1; joint position minima below their maxima; `base.canopen.stop_timeout`
+at least the wheels' ramp to rest (at connect).
+
+A key given twice in one YAML mapping is an error naming it and both lines.
+
+| key | allowed | unit | why |
+|---|---|---|---|
+"""
+
+
+def reference() -> str:
+    """docs/configuration.md: every number's key, range, unit and reason."""
+    def cell(text: str) -> str:
+        return text.replace("|", "\\|")
+    rows = [f"| `{key}` | {cell(rng)} | {cell(unit)} | {cell(why)} |"
+            for key, rng, unit, why in ranges(Config)]
+    return _REFERENCE_HEAD + "\n".join(rows) + "\n"
 
 
 def config_from_dict(data: Any, source: str | None = None) -> Config:

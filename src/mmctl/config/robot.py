@@ -20,9 +20,9 @@ class RobotConfig:
         115.0, unit="kg", ge=10.0, le=1000.0, doc="mobile base mass m_b (paper: 115 kg)",
         why="a base that carries a 33 kg UR10e: from a light cart to a ton (115 000 is grams)")
     base_inertia_z: float = param(
-        15.0, unit="kg m^2", ge=0.1, le=1000.0,
+        15.0, unit="kg m^2", ge=0.1, le=2000.0,
         doc="base yaw inertia I_bz; estimate m(a^2+b^2)/12 for a 0.98 x 0.78 m box",
-        why="a ton on a 3 x 3 m footprint is 1500/2 ~ 750 kg m^2",
+        why="up to a ton on a 3 x 3 m footprint: m (a^2 + b^2) / 12 = 1500 kg m^2",
     )
     arm_mount: tuple[float, ...] = param(
         (0.0, 0.0, 0.56162), unit="m", shape=(3,), ge=-2.0, le=2.0,

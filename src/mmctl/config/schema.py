@@ -232,3 +232,26 @@ def to_dict(obj: Any) -> Any:
     if isinstance(obj, tuple):
         return [to_dict(v) for v in obj]
     return obj
+
+
+def ranges(cls: type, path: str = "") -> list[tuple[str, str, str, str]]:
+    """(key, allowed range, unit, why) of every number in the section ``cls`` and its
+    subsections, in declaration order: the configuration reference (docs/configuration.md)."""
+    rows: list[tuple[str, str, str, str]] = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        typ = hints[f.name]
+        key = f"{path}.{f.name}" if path else f.name
+        if get_origin(typ) in (typing.Union, types.UnionType):
+            typ = next(a for a in get_args(typ) if a is not type(None))
+        if dataclasses.is_dataclass(typ):
+            rows.extend(ranges(cast(type, typ), key))
+            continue
+        elem = get_args(typ)[0] if get_origin(typ) is tuple else typ
+        if elem not in (int, float):
+            continue
+        meta = f.metadata
+        rows.append((key + ("[i]" if get_origin(typ) is tuple else ""),
+                     _range_text(meta), meta.get("unit", ""), meta.get("why", "")))
+    return rows
+
