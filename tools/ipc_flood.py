@@ -39,8 +39,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 STATUS = b'{"cmd": "status"}\n'
 
 
@@ -69,6 +67,8 @@ def client_main(mode: str, path: str, n: int, seconds: float) -> None:
     at once, each timed.  Prints one JSON line of counts (and latencies [ms])."""
     _soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+    print("ready", flush=True)
+    sys.stdin.readline()  # started, imported: the flood begins when the window does
     t0 = time.monotonic()
     end = t0 + seconds
     socks = _connect_all(path, n, end)
@@ -120,15 +120,32 @@ def client_main(mode: str, path: str, n: int, seconds: float) -> None:
 
 
 def _spawn(mode: str, path: Path, n: int, seconds: float) -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, __file__, "--client", mode, str(path), str(n),
-                             str(seconds)], stdout=subprocess.PIPE)
+    """A client process, started and waiting (its start-up is not in any window)."""
+    p = subprocess.Popen([sys.executable, __file__, "--client", mode, str(path), str(n),
+                          str(seconds)], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    assert p.stdout is not None
+    if p.stdout.readline() != b"ready\n":
+        raise RuntimeError("a flood client did not start")
+    return p
+
+
+def _go(procs: list[subprocess.Popen[bytes]]) -> list[subprocess.Popen[bytes]]:
+    for p in procs:
+        assert p.stdin is not None
+        p.stdin.write(b"go\n")
+        p.stdin.flush()
+    return procs
 
 
 def _collect(procs: list[subprocess.Popen[bytes]]) -> dict[str, Any]:
+    import numpy as np
+
     out: dict[str, Any] = {"connected": 0, "ok": 0, "evicted": 0, "errors": 0, "closed": 0}
     lat: list[float] = []
     for p in procs:
-        raw, _ = p.communicate(timeout=120)
+        assert p.stdout is not None
+        raw = p.stdout.read()
+        p.wait(120)
         r = json.loads(raw.decode().strip().splitlines()[-1])
         lat += r.pop("latency_ms")
         for k in out:
@@ -215,16 +232,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         per = max(1, args.burst // args.burst_procs)
         for _ in range(args.rounds):
             w["quiet"].append(_window(daemon, args.window, None))
-            w["hold"].append(_window(daemon, args.window,
-                                     [_spawn("hold", path, args.hold, args.window)]))
+            hold = [_spawn("hold", path, args.hold, args.window)]
+            w["hold"].append(_window(daemon, args.window, _go(hold)))
             w["quiet"].append(_window(daemon, args.window, None))
-            w["burst"].append(_window(daemon, args.window, [
-                _spawn("burst", path, per, args.window) for _ in range(args.burst_procs)]))
+            burst = [_spawn("burst", path, per, args.window) for _ in range(args.burst_procs)]
+            w["burst"].append(_window(daemon, args.window, _go(burst)))
         out["armed_before_stop"] = daemon.safety.armed
         out["faults"] = daemon.safety.faults
         out["fault"] = daemon.safety.as_dict().get("fault")
         # The socket still serves, with a hold flood connected: status, then stop.
-        held = [_spawn("hold", path, args.hold, 20.0)]
+        held = _go([_spawn("hold", path, args.hold, 20.0)])
         time.sleep(1.0)
         t = time.monotonic()
         try:
@@ -295,7 +312,15 @@ def main() -> int:
     p.add_argument("--host", default="127.0.0.7", help="the fake UR's loopback address")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
-    r = run(args)
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)  # the daemon's and the fakes' logs stay off stdout
+    try:
+        r = run(args)
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
     if args.json:
         print(json.dumps(r, indent=2))
     else:
