@@ -259,15 +259,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             st = request(path, "status", timeout=10.0)
             out["status_after"] = {"ok": True, "seconds": round(time.monotonic() - t, 3),
                                    "state": st.get("state")}
-        except MmctlError as exc:
-            out["status_after"] = {"ok": False, "error": str(exc)}
+        except (MmctlError, OSError) as exc:  # (a client without the backlog retry)
+            out["status_after"] = {"ok": False, "error": repr(exc)}
         t = time.monotonic()
         try:
             request(path, "stop", timeout=10.0)
             daemon_stopped = daemon._stop_requested.wait(10.0)
             out["stop_after"] = {"ok": daemon_stopped, "seconds": round(time.monotonic() - t, 3)}
-        except MmctlError as exc:
-            out["stop_after"] = {"ok": False, "error": str(exc)}
+        except (MmctlError, OSError) as exc:
+            out["stop_after"] = {"ok": False, "error": repr(exc)}
         srv = daemon.server
         if srv is not None and hasattr(srv, "counters"):
             out["server"] = dict(srv.counters)
