@@ -13,8 +13,10 @@ control socket, and alternates windows of ``--window`` seconds, ``--rounds`` tim
 * burst: ``--burst`` status requests (default 200) at once, from ``--burst-procs``
   child processes, each on its own connection.
 
-Per window: deadline misses, the loop's wake-latency and compute-time p99, and (burst)
-the requests' latency p50/p99/max.  The clients run in child processes, so their own
+Per window: deadline misses, the loop's wake-latency and compute-time p99, the daemon
+process's CPU time (less noisy than misses on a shared machine: what the socket's
+work adds is the difference to a quiet window), the clients' replies and their
+latency p50/p99/max.  The clients run in child processes, so their own
 work is not on the daemon's interpreter.  Afterwards, with the hold flood still
 connected: a ``status`` and a ``stop`` on the socket (they must get through), then the
 figures and the faults.  The miss budget is the robot's (``--budget robot``, 5
@@ -38,8 +40,6 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 STATUS = b'{"cmd": "status"}\n'
 
@@ -69,6 +69,8 @@ def client_main(mode: str, path: str, n: int, seconds: float) -> None:
     at once, each timed.  Prints one JSON line of counts (and latencies [ms])."""
     _soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+    print("ready", flush=True)
+    sys.stdin.readline()  # started, imported: the flood begins when the window does
     t0 = time.monotonic()
     end = t0 + seconds
     socks = _connect_all(path, n, end)
@@ -120,15 +122,32 @@ def client_main(mode: str, path: str, n: int, seconds: float) -> None:
 
 
 def _spawn(mode: str, path: Path, n: int, seconds: float) -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, __file__, "--client", mode, str(path), str(n),
-                             str(seconds)], stdout=subprocess.PIPE)
+    """A client process, started and waiting (its start-up is not in any window)."""
+    p = subprocess.Popen([sys.executable, __file__, "--client", mode, str(path), str(n),
+                          str(seconds)], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    assert p.stdout is not None
+    if p.stdout.readline() != b"ready\n":
+        raise RuntimeError("a flood client did not start")
+    return p
+
+
+def _go(procs: list[subprocess.Popen[bytes]]) -> list[subprocess.Popen[bytes]]:
+    for p in procs:
+        assert p.stdin is not None
+        p.stdin.write(b"go\n")
+        p.stdin.flush()
+    return procs
 
 
 def _collect(procs: list[subprocess.Popen[bytes]]) -> dict[str, Any]:
+    import numpy as np
+
     out: dict[str, Any] = {"connected": 0, "ok": 0, "evicted": 0, "errors": 0, "closed": 0}
     lat: list[float] = []
     for p in procs:
-        raw, _ = p.communicate(timeout=120)
+        assert p.stdout is not None
+        raw = p.stdout.read()
+        p.wait(120)
         r = json.loads(raw.decode().strip().splitlines()[-1])
         lat += r.pop("latency_ms")
         for k in out:
@@ -148,18 +167,27 @@ def _window(daemon: Any, seconds: float, flood: list[subprocess.Popen[bytes]] | 
 
     ring = daemon.ring
     c0 = ring.count
+    cpu0 = _cpu()
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end:
         time.sleep(0.05)
+    cpu = _cpu() - cpu0
     snap = ring.snapshot(ring.count - c0)
     st = summarize(snap)
     fig: dict[str, Any] = {"cycles": st.cycles, "misses": st.missed,
                            "overrun_cycles": int((snap.missed > 0).sum()),
                            "latency_p99_us": round(float(st.latency_p99_us), 1),
-                           "compute_p99_us": round(float(st.compute_p99_us), 1)}
+                           "compute_p99_us": round(float(st.compute_p99_us), 1),
+                           "daemon_cpu_s": round(cpu, 3)}
     if flood is not None:
         fig["clients"] = _collect(flood)
     return fig
+
+
+def _cpu() -> float:
+    """CPU time of this process so far (the daemon: loop, socket, telemetry) [s]."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -215,31 +243,31 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         per = max(1, args.burst // args.burst_procs)
         for _ in range(args.rounds):
             w["quiet"].append(_window(daemon, args.window, None))
-            w["hold"].append(_window(daemon, args.window,
-                                     [_spawn("hold", path, args.hold, args.window)]))
+            hold = [_spawn("hold", path, args.hold, args.window)]
+            w["hold"].append(_window(daemon, args.window, _go(hold)))
             w["quiet"].append(_window(daemon, args.window, None))
-            w["burst"].append(_window(daemon, args.window, [
-                _spawn("burst", path, per, args.window) for _ in range(args.burst_procs)]))
+            burst = [_spawn("burst", path, per, args.window) for _ in range(args.burst_procs)]
+            w["burst"].append(_window(daemon, args.window, _go(burst)))
         out["armed_before_stop"] = daemon.safety.armed
         out["faults"] = daemon.safety.faults
         out["fault"] = daemon.safety.as_dict().get("fault")
         # The socket still serves, with a hold flood connected: status, then stop.
-        held = [_spawn("hold", path, args.hold, 20.0)]
+        held = _go([_spawn("hold", path, args.hold, 20.0)])
         time.sleep(1.0)
         t = time.monotonic()
         try:
             st = request(path, "status", timeout=10.0)
             out["status_after"] = {"ok": True, "seconds": round(time.monotonic() - t, 3),
                                    "state": st.get("state")}
-        except MmctlError as exc:
-            out["status_after"] = {"ok": False, "error": str(exc)}
+        except (MmctlError, OSError) as exc:  # (a client without the backlog retry)
+            out["status_after"] = {"ok": False, "error": repr(exc)}
         t = time.monotonic()
         try:
             request(path, "stop", timeout=10.0)
             daemon_stopped = daemon._stop_requested.wait(10.0)
             out["stop_after"] = {"ok": daemon_stopped, "seconds": round(time.monotonic() - t, 3)}
-        except MmctlError as exc:
-            out["stop_after"] = {"ok": False, "error": str(exc)}
+        except (MmctlError, OSError) as exc:
+            out["stop_after"] = {"ok": False, "error": repr(exc)}
         srv = daemon.server
         if srv is not None and hasattr(srv, "counters"):
             out["server"] = dict(srv.counters)
@@ -256,7 +284,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 def _print(r: dict[str, Any]) -> None:
     print(f"control-socket floods, {r['rounds']} rounds of {r['window_s']:g} s windows, "
           f"{r['cpus']} CPUs, load {r['loadavg_1min']:.2f}, miss budget: {r['budget']}")
-    print(f"{'window':8} {'misses':>7} {'lat p99 us':>11} {'comp p99 us':>12}  clients")
+    print(f"{'window':8} {'misses':>7} {'lat p99 us':>11} {'comp p99 us':>12} "
+          f"{'cpu s':>6}  clients")
     for kind in ("quiet", "hold", "burst"):
         for x in r["windows"][kind]:
             c = x.get("clients")
@@ -268,9 +297,10 @@ def _print(r: dict[str, Any]) -> None:
                     lm = c["latency_ms"]
                     extra += f"; reply ms p50 {lm['p50']} p99 {lm['p99']} max {lm['max']}"
             print(f"{kind:8} {x['misses']:>7} {x['latency_p99_us']:>11} "
-                  f"{x['compute_p99_us']:>12}  {extra}")
+                  f"{x['compute_p99_us']:>12} {x['daemon_cpu_s']:>6}  {extra}")
     for kind in ("quiet", "hold", "burst"):
-        print(f"{kind} misses per window: {r[f'{kind}_misses']}")
+        cpu = [x["daemon_cpu_s"] for x in r["windows"][kind]]
+        print(f"{kind} misses per window: {r[f'{kind}_misses']}; daemon CPU s: {cpu}")
     print(f"armed through the floods: {r['armed_before_stop']}; faults: {r['faults']} "
           f"({r['fault']})")
     print(f"with {r['hold']} clients held: status {r['status_after']}, stop {r['stop_after']}")
@@ -295,7 +325,15 @@ def main() -> int:
     p.add_argument("--host", default="127.0.0.7", help="the fake UR's loopback address")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
-    r = run(args)
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)  # the daemon's and the fakes' logs stay off stdout
+    try:
+        r = run(args)
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
     if args.json:
         print(json.dumps(r, indent=2))
     else:

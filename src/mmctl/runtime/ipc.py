@@ -360,7 +360,9 @@ class ControlServer:
             self._conns.clear()
         self._sock.close()
         self._sock = None
-        for fd in (self._wake_r, self._wake_w):
+        wake_r, wake_w = self._wake_r, self._wake_w
+        self._wake_r = self._wake_w = -1  # a worker finishing late writes nowhere
+        for fd in (wake_r, wake_w):
             os.close(fd)
         try:
             if self.path.stat().st_ino == self._inode:
@@ -369,8 +371,11 @@ class ControlServer:
             pass
 
     def _wake(self) -> None:
+        fd = self._wake_w
+        if fd < 0:
+            return
         try:
-            os.write(self._wake_w, b"x")
+            os.write(fd, b"x")
         except (BlockingIOError, OSError):
             pass  # the pipe is full (a wake-up is pending anyway) or closed
 

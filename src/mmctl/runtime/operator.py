@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any
 
 import structlog
 
@@ -89,7 +89,7 @@ class OperatorCommands(_Parts):
             "status": lambda req: self.status_snapshot(),
             "enable": lambda req: self._enable_request(
                 _budget(req, self.cfg.daemon.command_timeout)),
-            "disable": lambda req: self._on_loop(self._disable),
+            "disable": lambda req: self._then_status(self._on_loop(self._disable)),
             "mode": self._cmd_mode,
             "switch": self._cmd_switch,
             "tare": self._cmd_tare,
@@ -99,11 +99,11 @@ class OperatorCommands(_Parts):
 
     def _cmd_mode(self, req: Mapping[str, Any]) -> Any:
         mode = _arg(req, "mode", str)
-        return self._on_loop(lambda: self._set_mode(mode))
+        return self._then_status(self._on_loop(lambda: self._set_mode(mode)))
 
     def _cmd_switch(self, req: Mapping[str, Any]) -> Any:
         which = _arg(req, "to", str)
-        return self._on_loop(lambda: self._set_switch(which))
+        return self._then_status(self._on_loop(lambda: self._set_switch(which)))
 
     def _cmd_tare(self, req: Mapping[str, Any]) -> Any:
         self._hands_off_for_tare()
@@ -151,7 +151,12 @@ class OperatorCommands(_Parts):
         if left <= 0:
             raise MmctlError(f"refused to enable: the arm's reconnect took longer than "
                              f"{budget:g} s (daemon.command_timeout or the client's timeout)")
-        return cast("dict[str, Any]", self._on_loop(self._enable, left))
+        return self._then_status(self._on_loop(self._enable, left))
+
+    def _then_status(self, _done: None) -> dict[str, Any]:
+        """A command's reply: the status, built on the caller's thread (never on the
+        loop's: building it costs a share of a cycle) once the command has run."""
+        return self.status_snapshot()
 
     def _begin_enable(self) -> bool:
         """Loop thread: whether the enable must reconnect the arm first (then the loop
@@ -161,7 +166,7 @@ class OperatorCommands(_Parts):
         self._arm_busy = True
         return True
 
-    def _enable(self) -> dict[str, Any]:
+    def _enable(self) -> None:
         """Operator re-arm (loop thread).
 
         Conditions other than the base's must be gone (else EnableRefused); the arm is
@@ -170,7 +175,7 @@ class OperatorCommands(_Parts):
         silent refuses the enable.
         """
         if self.safety.armed:
-            return self.status()
+            return
         if self.cycles == 0:
             raise MmctlError("refused to enable: no control cycle has run yet")
         if self.core.taring:
@@ -208,7 +213,6 @@ class OperatorCommands(_Parts):
         self.core.reset()
         self.loop.reset_misses()
         self._update_status()
-        return self.status()
 
     def _reconnect_arm(self) -> None:
         """Enable after a lost link / stopped program (off the loop thread, the loop
@@ -223,20 +227,18 @@ class OperatorCommands(_Parts):
             raise MmctlError(f"refused to enable: the arm did not reconnect ({exc})") from None
         log.info("arm_reconnected")
 
-    def _disable(self) -> dict[str, Any]:
+    def _disable(self) -> None:
         if self.safety.disable():
             self._send_stop()
         self._update_status()
-        return self.status()
 
-    def _set_mode(self, mode: str) -> dict[str, Any]:
+    def _set_mode(self, mode: str) -> None:
         old = self.core.mode
         self.core.set_mode(mode)
         log.info("mode", old=old, new=self.core.mode)
         self._update_status()
-        return self.status()
 
-    def _set_switch(self, which: str) -> dict[str, Any]:
+    def _set_switch(self, which: str) -> None:
         if self.core.mode != "switch":
             raise MmctlError(f"`switch` needs mode 'switch' (current mode: {self.core.mode}); "
                              "run `mmctl mode switch` first")
@@ -244,7 +246,6 @@ class OperatorCommands(_Parts):
         self.core.set_switch(which)
         log.info("switch", old=old, new=self.core.switch)
         self._update_status()
-        return self.status()
 
     def _tare(self) -> dict[str, Any]:
         if self.safety.armed:
