@@ -809,6 +809,29 @@ def test_enable_is_refused_while_the_cycle_keeps_failing(
     assert_moves(rig.step())
 
 
+def test_a_latched_arm_link_fault_reconnects_even_when_reads_look_fine(
+        make_rig: Callable[..., Rig]) -> None:
+    """A link lost under speedJ, then reads that look fine again (a dead controller's
+    last sample lingering in the arm's process): the enable still reconnects first, and
+    a reconnect that fails refuses it."""
+    rig = make_rig()
+    rig.arm_and_push()
+    rig.arm.die_at_send = True
+    rig.step()
+    assert rig.daemon.safety.latched is FaultCause.ARM_DISCONNECTED
+    rig.arm.gone, rig.arm.reachable = False, True  # reads answer again ...
+    rig.arm.script_refused = True  # ... but the controller runs no control script
+    assert_still(rig.step())
+    assert not rig.daemon.safety.active  # nothing present: only the latch remembers
+    with pytest.raises(MmctlError, match="refused to enable: the arm did not reconnect"):
+        rig.enable()
+    assert rig.rec.log[-1] == Command(None, "arm", "reconnect")
+    assert rig.state is SafetyState.FAULT
+    rig.arm.script_refused = False
+    rig.enable()
+    assert rig.daemon.safety.armed
+
+
 def test_the_sample_hook_runs_after_the_stop_and_before_the_motion(
         make_rig: Callable[..., Rig]) -> None:
     """Telemetry goes after a stop (never delays it) and before speedJ and the twist

@@ -160,8 +160,14 @@ class OperatorCommands(_Parts):
 
     def _begin_enable(self) -> bool:
         """Loop thread: whether the enable must reconnect the arm first (then the loop
-        leaves the arm to the reconnect from now on)."""
-        if self.safety.armed or not (self.safety.active.keys() & _ARM_RECONNECT_CAUSES):
+        leaves the arm to the reconnect from now on): an arm link or program condition
+        present, or one latched (a link that failed once is not trusted because its
+        reads look fine again: a dead controller's last sample can linger in the arm's
+        process for up to ``arm.stale_cycles``)."""
+        if self.safety.armed:
+            return False
+        if not (self.safety.active.keys() & _ARM_RECONNECT_CAUSES
+                or self.safety.latched in _ARM_RECONNECT_CAUSES):
             return False
         self._arm_busy = True
         return True
