@@ -171,7 +171,7 @@ def test_the_kept_samples_stay_bounded(monkeypatch: pytest.MonkeyPatch,
                                        tmp_path: Path) -> None:
     """A run of any length keeps at most MAX_SAMPLES samples, spread over all of it."""
     monkeypatch.setattr(soak, "MAX_SAMPLES", 100)
-    args = soak.argparse.Namespace(seed=0, faults="", host="127.0.0.1")
+    args = soak.argparse.Namespace(seed=0, faults="", host="127.0.0.1", warmup=None)
     run = soak.Soak(args, 1e6, tmp_path, tmp_path / "log")
     for i in range(10_000):
         run._keep({"t": float(i)})

@@ -395,6 +395,7 @@ class Soak:
         self.flood_error_examples: dict[str, str] = {}
         self.flood_misses = 0
         self.status_errors = collections.Counter[str]()
+        self.warmup = warmup_seconds(duration, args.warmup)
         self.rotation = [f.strip() for f in args.faults.split(",") if f.strip()]
         self.sim_pid: int | None = None
         self.last_status: dict[str, Any] = {}
@@ -403,6 +404,7 @@ class Soak:
         self.fds_first: dict[str, int] | None = None
         self.fds_at_max: dict[str, Any] | None = None
         self.children_first: list[str] | None = None
+        self._undo: tuple[list[float], float] | None = None  # the next push (its opposite)
         self.notes: collections.deque[dict[str, Any]] = collections.deque(maxlen=MAX_RECORDS)
 
     # -- the daemon --------------------------------------------------------------------
@@ -591,7 +593,8 @@ class Soak:
         nxt: dict[str, float | None] = {"push": now + self._exp(a.push_every) if a.push_every > 0 else None,
                "person": now + self.rng.uniform(45.0, 120.0),
                "flood": now + a.flood_every if a.flood_clients > 0 else None,
-               "fault": now + a.fault_every if a.fault_every > 0 and self.rotation else None,
+               "fault": (now + self._fault_gap(0) if a.fault_every > 0 and self.rotation
+                         else None),
                "check": now + 1.0}
         person_back: float | None = None
         k = 0
@@ -624,7 +627,17 @@ class Soak:
                     person_back = None
                 self._inject(self.rotation[k % len(self.rotation)])
                 k += 1
-                nxt["fault"] = time.monotonic() + a.fault_every
+                nxt["fault"] = time.monotonic() + self._fault_gap(k)
+
+    def _fault_gap(self, done: int) -> float:
+        """Seconds to the next injected fault: during the warm-up every fault of the
+        rotation is injected once, spread over it (their first runs' allocations —
+        imports, first exceptions — fall in the warm-up, not in the judged growth);
+        then every ``--fault-every`` seconds."""
+        every = float(self.args.fault_every)
+        if done < len(self.rotation):
+            return min(every, self.warmup / (len(self.rotation) + 1))
+        return every
 
     def _exp(self, mean: float) -> float:
         return min(5 * mean, self.rng.expovariate(1.0 / mean))
@@ -643,14 +656,21 @@ class Soak:
         self.notes.append({"t": self._t(), "note": text})
 
     def _push(self) -> None:
+        """A random push, then (next time) the same push the other way: pushes in
+        opposite pairs, so the handle does not random-walk the arm into its joint
+        limits (the fake UR's protective stop) over a long run."""
         import math
 
-        force = self.rng.uniform(10.0, 40.0)
-        angle = self.rng.uniform(0.0, 2 * math.pi)
-        seconds = self.rng.uniform(0.2, 2.0)
-        self._try(lambda: self.sim("push", force=[force * math.cos(angle),
-                                                  force * math.sin(angle), 0.0],
-                                   seconds=seconds), "push")
+        if self._undo is None:
+            force = self.rng.uniform(10.0, 40.0)
+            angle = self.rng.uniform(0.0, 2 * math.pi)
+            seconds = self.rng.uniform(0.2, 2.0)
+            f = [force * math.cos(angle), force * math.sin(angle), 0.0]
+            self._undo = ([-x for x in f], seconds)
+        else:
+            f, seconds = self._undo
+            self._undo = None
+        self._try(lambda: self.sim("push", force=f, seconds=seconds), "push")
         self.counts["pushes"] += 1
 
     def _flood(self, n: int) -> None:
