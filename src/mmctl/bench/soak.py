@@ -75,7 +75,8 @@ FAULT_CAUSES: dict[str, frozenset[str]] = {
     "arm_emergency_stop": frozenset({"arm_emergency_stop"}),
     "sensor_saturation": frozenset({"sensor_saturation"}),
     "sensor_silent": frozenset({"sensor_stale", "sensor_link_lost"}),
-    "arm_frozen": frozenset({"arm_timestamp_stale"}),
+    # a frozen stream: stale timestamps, or the arm's process gives the link up first
+    "arm_frozen": frozenset({"arm_timestamp_stale", "arm_disconnected"}),
     "drive_silent": frozenset({"drive_heartbeat_lost"}),
     "arm_not_playing": frozenset({"arm_not_playing"}),
     # the controller's process dies: its stream stops before its sockets close
@@ -730,9 +731,13 @@ class Soak:
             self.faults_seen = n
             cause = st.get("fault") or "unknown"
             self.unexpected_by_cause[cause] += new
+            sim = self._try(lambda: self.sim("status"), "sim_status") or {}
             self.unexpected.append({"t": self._t(), "cause": cause, "count": new,
                                     "details": st.get("fault_details"),
-                                    "conditions": st.get("conditions")})
+                                    "conditions": st.get("conditions"),
+                                    # where the simulated arm is (a joint at its limit?)
+                                    "sim_arm_q": sim.get("arm_q"),
+                                    "sim_faults": sim.get("faults")})
         if st.get("state") != "armed":
             self._busy_enter()
             try:
