@@ -806,6 +806,8 @@ class Soak:
                         if isinstance(r, dict) and r.get("state") == "armed":
                             stats["enabled_while_present"] += 1
                             self.counts["enabled_while_present"] += 1
+                            self._note(f"{name}: enable accepted while injected "
+                                       f"(latched {cause}, {st.get('fault_details')})")
                     except IpcError:
                         stats["refused_while_present"] += 1
             else:
@@ -819,6 +821,18 @@ class Soak:
                 stats["reenable_ms_total"] += int(1000 * (time.monotonic() - t_inj))
             else:
                 self.counts["not_reenabled"] += 1
+            # faults between the detection and the end of the re-enable (a refused enable
+            # latches nothing; an accepted one may fault again before it returns)
+            after = self._try(lambda: self.call("status", timeout=10.0), "status") or {}
+            n = int(after.get("faults", self.faults_seen))
+            if n > self.faults_seen:
+                cause = after.get("fault") or "unknown"
+                self.unexpected_by_cause[cause] += n - self.faults_seen
+                self.unexpected.append({"t": self._t(), "cause": cause,
+                                        "count": n - self.faults_seen,
+                                        "while_reenabling_after": name,
+                                        "details": after.get("fault_details")})
+                self.faults_seen = n
         finally:
             self._busy_exit(settle=2.0)
 
