@@ -83,8 +83,11 @@ def test_a_short_soak_reports_its_samples(loopback_host: str,
     assert rep["floods"]["bursts"] >= 1
     assert rep["pushes"] >= 1
     assert rep["daemon_log"] is None or Path(rep["daemon_log"]).is_file()
-    if rep["daemon_log"]:
-        Path(rep["daemon_log"]).unlink()
+    if rep["daemon_log"]:  # kept (FAIL) in the soak's temporary directory: remove both
+        log = Path(rep["daemon_log"])
+        log.unlink()
+        assert log.parent.name.startswith("mmctl-soak-")
+        log.parent.rmdir()
 
 
 @pytest.mark.timeout(400)
