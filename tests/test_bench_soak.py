@@ -83,8 +83,11 @@ def test_a_short_soak_reports_its_samples(loopback_host: str,
     assert rep["floods"]["bursts"] >= 1
     assert rep["pushes"] >= 1
     assert rep["daemon_log"] is None or Path(rep["daemon_log"]).is_file()
-    if rep["daemon_log"]:
-        Path(rep["daemon_log"]).unlink()
+    if rep["daemon_log"]:  # kept (FAIL) in the soak's temporary directory: remove both
+        log = Path(rep["daemon_log"])
+        log.unlink()
+        assert log.parent.name.startswith("mmctl-soak-")
+        log.parent.rmdir()
 
 
 @pytest.mark.timeout(400)
@@ -171,7 +174,7 @@ def test_the_kept_samples_stay_bounded(monkeypatch: pytest.MonkeyPatch,
                                        tmp_path: Path) -> None:
     """A run of any length keeps at most MAX_SAMPLES samples, spread over all of it."""
     monkeypatch.setattr(soak, "MAX_SAMPLES", 100)
-    args = soak.argparse.Namespace(seed=0, faults="", host="127.0.0.1")
+    args = soak.argparse.Namespace(seed=0, faults="", host="127.0.0.1", warmup=None)
     run = soak.Soak(args, 1e6, tmp_path, tmp_path / "log")
     for i in range(10_000):
         run._keep({"t": float(i)})

@@ -75,7 +75,8 @@ FAULT_CAUSES: dict[str, frozenset[str]] = {
     "arm_emergency_stop": frozenset({"arm_emergency_stop"}),
     "sensor_saturation": frozenset({"sensor_saturation"}),
     "sensor_silent": frozenset({"sensor_stale", "sensor_link_lost"}),
-    "arm_frozen": frozenset({"arm_timestamp_stale"}),
+    # a frozen stream: stale timestamps, or the arm's process gives the link up first
+    "arm_frozen": frozenset({"arm_timestamp_stale", "arm_disconnected"}),
     "drive_silent": frozenset({"drive_heartbeat_lost"}),
     "arm_not_playing": frozenset({"arm_not_playing"}),
     # the controller's process dies: its stream stops before its sockets close
@@ -395,6 +396,7 @@ class Soak:
         self.flood_error_examples: dict[str, str] = {}
         self.flood_misses = 0
         self.status_errors = collections.Counter[str]()
+        self.warmup = warmup_seconds(duration, args.warmup)
         self.rotation = [f.strip() for f in args.faults.split(",") if f.strip()]
         self.sim_pid: int | None = None
         self.last_status: dict[str, Any] = {}
@@ -403,6 +405,7 @@ class Soak:
         self.fds_first: dict[str, int] | None = None
         self.fds_at_max: dict[str, Any] | None = None
         self.children_first: list[str] | None = None
+        self._undo: tuple[list[float], float] | None = None  # the next push (its opposite)
         self.notes: collections.deque[dict[str, Any]] = collections.deque(maxlen=MAX_RECORDS)
 
     # -- the daemon --------------------------------------------------------------------
@@ -591,7 +594,8 @@ class Soak:
         nxt: dict[str, float | None] = {"push": now + self._exp(a.push_every) if a.push_every > 0 else None,
                "person": now + self.rng.uniform(45.0, 120.0),
                "flood": now + a.flood_every if a.flood_clients > 0 else None,
-               "fault": now + a.fault_every if a.fault_every > 0 and self.rotation else None,
+               "fault": (now + self._fault_gap(0) if a.fault_every > 0 and self.rotation
+                         else None),
                "check": now + 1.0}
         person_back: float | None = None
         k = 0
@@ -624,7 +628,17 @@ class Soak:
                     person_back = None
                 self._inject(self.rotation[k % len(self.rotation)])
                 k += 1
-                nxt["fault"] = time.monotonic() + a.fault_every
+                nxt["fault"] = time.monotonic() + self._fault_gap(k)
+
+    def _fault_gap(self, done: int) -> float:
+        """Seconds to the next injected fault: during the warm-up every fault of the
+        rotation is injected once, spread over it (their first runs' allocations —
+        imports, first exceptions — fall in the warm-up, not in the judged growth);
+        then every ``--fault-every`` seconds."""
+        every = float(self.args.fault_every)
+        if done < len(self.rotation):
+            return min(every, self.warmup / (len(self.rotation) + 1))
+        return every
 
     def _exp(self, mean: float) -> float:
         return min(5 * mean, self.rng.expovariate(1.0 / mean))
@@ -643,14 +657,21 @@ class Soak:
         self.notes.append({"t": self._t(), "note": text})
 
     def _push(self) -> None:
+        """A random push, then (next time) the same push the other way: pushes in
+        opposite pairs, so the handle does not random-walk the arm into its joint
+        limits (the fake UR's protective stop) over a long run."""
         import math
 
-        force = self.rng.uniform(10.0, 40.0)
-        angle = self.rng.uniform(0.0, 2 * math.pi)
-        seconds = self.rng.uniform(0.2, 2.0)
-        self._try(lambda: self.sim("push", force=[force * math.cos(angle),
-                                                  force * math.sin(angle), 0.0],
-                                   seconds=seconds), "push")
+        if self._undo is None:
+            force = self.rng.uniform(10.0, 40.0)
+            angle = self.rng.uniform(0.0, 2 * math.pi)
+            seconds = self.rng.uniform(0.2, 2.0)
+            f = [force * math.cos(angle), force * math.sin(angle), 0.0]
+            self._undo = ([-x for x in f], seconds)
+        else:
+            f, seconds = self._undo
+            self._undo = None
+        self._try(lambda: self.sim("push", force=f, seconds=seconds), "push")
         self.counts["pushes"] += 1
 
     def _flood(self, n: int) -> None:
@@ -710,9 +731,13 @@ class Soak:
             self.faults_seen = n
             cause = st.get("fault") or "unknown"
             self.unexpected_by_cause[cause] += new
+            sim = self._try(lambda: self.sim("status"), "sim_status") or {}
             self.unexpected.append({"t": self._t(), "cause": cause, "count": new,
                                     "details": st.get("fault_details"),
-                                    "conditions": st.get("conditions")})
+                                    "conditions": st.get("conditions"),
+                                    # where the simulated arm is (a joint at its limit?)
+                                    "sim_arm_q": sim.get("arm_q"),
+                                    "sim_faults": sim.get("faults")})
         if st.get("state") != "armed":
             self._busy_enter()
             try:
@@ -781,6 +806,8 @@ class Soak:
                         if isinstance(r, dict) and r.get("state") == "armed":
                             stats["enabled_while_present"] += 1
                             self.counts["enabled_while_present"] += 1
+                            self._note(f"{name}: enable accepted while injected "
+                                       f"(latched {cause}, {st.get('fault_details')})")
                     except IpcError:
                         stats["refused_while_present"] += 1
             else:
@@ -794,6 +821,18 @@ class Soak:
                 stats["reenable_ms_total"] += int(1000 * (time.monotonic() - t_inj))
             else:
                 self.counts["not_reenabled"] += 1
+            # faults between the detection and the end of the re-enable (a refused enable
+            # latches nothing; an accepted one may fault again before it returns)
+            after = self._try(lambda: self.call("status", timeout=10.0), "status") or {}
+            n = int(after.get("faults", self.faults_seen))
+            if n > self.faults_seen:
+                cause = after.get("fault") or "unknown"
+                self.unexpected_by_cause[cause] += n - self.faults_seen
+                self.unexpected.append({"t": self._t(), "cause": cause,
+                                        "count": n - self.faults_seen,
+                                        "while_reenabling_after": name,
+                                        "details": after.get("fault_details")})
+                self.faults_seen = n
         finally:
             self._busy_exit(settle=2.0)
 
