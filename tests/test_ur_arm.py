@@ -24,7 +24,7 @@ from mmctl.transports.ur_rtde_arm import UrRtdeArm
 from mmctl.types import ArmState
 
 PERIOD = 0.002
-STALE = 25
+STALE = 250  # 0.5 s: a loaded machine starves the fake UR's process for tens of ms
 Q0 = [0.2, -1.6, 1.5, -1.4, -1.57, 0.1]
 pytestmark = pytest.mark.timeout(120)
 
@@ -73,8 +73,10 @@ class Cycles:
 
 
 def fresh_state(arm: UrRtdeArm, limit: int = 5000) -> ArmState:
-    """read_state until a new sample arrives (so that stop() may use speedStop)."""
-    first = arm.read_state()
+    """read_state until a new sample arrives (so that stop() may use speedStop).  The
+    receive interface's first samples may predate the control script's start (not yet
+    PLAYING on a loaded machine): the first healthy one counts."""
+    first = wait_healthy(arm, limit)
     clock = Cycles()
     for _ in range(limit):
         clock.wait()
