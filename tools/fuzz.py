@@ -71,6 +71,7 @@ import tempfile
 import threading
 import time
 import traceback
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -457,18 +458,38 @@ class _CanPeer:
                 out = []
         return out
 
+    def odd_frames(self) -> list[Any]:
+        """Remote, extended-id and error frames on our ids (ops ``rtr``, ``ext``, ``err``)."""
+        rng, msgs = self.rng, []
+        for op in self.ops:
+            aid = self.fid(rng.choice((0, 1, 2, 3, 4, 7, 8)))
+            if op == "rtr":
+                msgs.append(self.can.Message(arbitration_id=aid, is_remote_frame=True,
+                                             dlc=rng.choice((0, 6, 8)), is_extended_id=False))
+            elif op == "ext":
+                msgs.append(self.can.Message(arbitration_id=aid, data=rand_bytes(rng, 8),
+                                             is_extended_id=True))
+            elif op == "err":
+                msgs.append(self.can.Message(arbitration_id=aid, is_error_frame=True,
+                                             is_extended_id=False))
+        return msgs
+
     def answer(self) -> None:
         while True:
             msg = self.bus.recv(0.0)
             if msg is None:
                 return
+            for odd in self.odd_frames():
+                self.sent.append((odd.arbitration_id, repr(odd)[:60]))
+                self.bus.send(odd)
             for aid, data in self.fuzz(self.valid_replies(msg)):
                 self.sent.append((aid, data.hex()))
                 self.bus.send(self.can.Message(arbitration_id=aid, data=data,
                                                is_extended_id=False))
 
 
-_CAN_OPS = ("drop", "dup", "swap", "mutate", "status", "rail", "stray", "id", "silent")
+_CAN_OPS = ("drop", "dup", "swap", "mutate", "status", "rail", "stray", "id", "silent", "rtr",
+            "ext", "err")
 
 
 class CanClient(Target):
@@ -885,7 +906,8 @@ class SerialBaseClient(Target):
         ops: tuple[str, ...] = ()
         if rng.random() < 0.4:
             ops = tuple(rng.choice(_SERIAL_OPS) for _ in range(rng.randint(1, 3)))
-        twist = tuple(rng.choice((0.0, rng.uniform(-2, 2), 1e300, -1e300, math.nan, math.inf))
+        twist = tuple(rng.choice((0.0, rng.uniform(-2, 2), 1e300, -1e300, 1.7e308, -1e308,
+                                   5e-324, math.nan, math.inf))
                       if rng.random() < 0.1 else rng.uniform(-1, 1) for _ in range(3))
         return action, rng.getrandbits(32), ops, twist
 
@@ -1321,6 +1343,7 @@ def _quiet_logs() -> None:
 
 def _run_in_worker(name: str, inputs: int, seed: int) -> dict[str, Any]:
     _quiet_logs()
+    warnings.simplefilter("ignore")  # numpy's overflow warnings: the outputs are checked
     sys.setrecursionlimit(max(sys.getrecursionlimit(), 1000))
     res = fuzz_target(TARGETS[name](), inputs, seed)
     d = res.__dict__.copy()
