@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Fuzz every decoder and parser with random, mutated and valid-then-mutated inputs.
 
-    PYTHONPATH=src .venv/bin/python tools/fuzz.py [--inputs N] [--seed S] [--json]
+    .venv/bin/python tools/fuzz.py [--inputs N] [--seed S] [--json]
         [--targets NAME ...] [--jobs J] [--list]
 
 Each target is fed ``N x scale`` inputs (the scale is 1 for the decoders; the targets
