@@ -1040,6 +1040,7 @@ class IpcSocket(Target):
         self.path = Path(self.tmp.name) / "fuzz.sock"
         self.server = ControlServer(self.path, _accept_anything)
         self.thread_errors: list[str] = []
+        self._excepthook = threading.excepthook
         threading.excepthook = lambda a: self.thread_errors.append(
             f"{a.exc_type.__name__} in thread {a.thread.name if a.thread else '?'}")
         self.server.start()
@@ -1050,6 +1051,7 @@ class IpcSocket(Target):
         self._disconnect()
         self.server.close()
         self.tmp.cleanup()
+        threading.excepthook = self._excepthook
 
     def _disconnect(self) -> None:
         if self.conn is not None:
@@ -1207,14 +1209,14 @@ def _check_loaded(cfg: Any) -> None:
     walk(cfg, "")
 
 
-def _cache_type_hints() -> None:
+def _cache_type_hints() -> Callable[[], None]:
     """``config.schema.build`` asks ``typing.get_type_hints`` for every section of every
     build (70 % of a load's time); the answer never changes for a class, so this process
-    caches it.  Nothing else about the loader changes."""
+    caches it.  Nothing else about the loader changes.  Returns what undoes it."""
     import functools
     import typing
     if hasattr(typing.get_type_hints, "cache_info"):
-        return
+        return lambda: None
     plain = typing.get_type_hints
 
     @functools.cache
@@ -1232,6 +1234,10 @@ def _cache_type_hints() -> None:
     get_type_hints.cache_info = cached.cache_info  # type: ignore[attr-defined]
     typing.get_type_hints = get_type_hints  # type: ignore[assignment]
 
+    def undo() -> None:
+        typing.get_type_hints = plain
+    return undo
+
 
 class ConfigValues(Target):
     """Mutated configuration mappings (defaults, config/*.yaml; values replaced by odd
@@ -1243,7 +1249,7 @@ class ConfigValues(Target):
 
     def setup(self) -> None:
         from mmctl.config import ConfigError, config_from_dict
-        _cache_type_hints()
+        self._undo_hints = _cache_type_hints()
         self.documented = (ConfigError,)
         self.load = config_from_dict
         self.sources = _config_sources()
@@ -1253,6 +1259,9 @@ class ConfigValues(Target):
         if rng.random() < 0.05:
             return _odd_value(rng)
         return _mutated_mapping(rng, self.sources, self.paths)
+
+    def teardown(self) -> None:
+        self._undo_hints()
 
     def feed(self, data: Any) -> Any:
         _check_loaded(self.load(data))
@@ -1269,7 +1278,7 @@ class ConfigYaml(Target):
 
     def setup(self) -> None:
         from mmctl.config import ConfigError, load_config
-        _cache_type_hints()
+        self._undo_hints = _cache_type_hints()
         self.documented = (ConfigError,)
         self.load = load_config
         self.texts = _config_texts()
@@ -1280,6 +1289,7 @@ class ConfigYaml(Target):
 
     def teardown(self) -> None:
         self.tmp.cleanup()
+        self._undo_hints()
 
     def generate(self, rng: random.Random) -> bytes:
         import yaml
