@@ -1184,8 +1184,9 @@ def _mutated_mapping(rng: random.Random, sources: list[dict[str, Any]],
 
 
 def _check_loaded(cfg: Any) -> None:
-    """Every number finite; every time in seconds (and every rate's period) usable as a
-    timeout: ``threading`` raises ``OverflowError`` on a time it cannot represent."""
+    """Every number finite; every time in seconds (and the period of every rate or
+    frequency in Hz) usable as a timeout: ``threading`` raises ``OverflowError`` on a
+    time it cannot represent."""
     import dataclasses
     lock = threading.Lock()
 
@@ -1198,6 +1199,8 @@ def _check_loaded(cfg: Any) -> None:
                 continue
             check_finite(v, key)
             unit = str(f.metadata.get("unit", ""))
+            if unit == "Hz" and "rate" not in f.name and "frequency" not in f.name:
+                unit = ""  # a filter's cut-off, not a rate anything waits for
             if isinstance(v, (int, float)) and not isinstance(v, bool) and unit in ("s", "Hz"):
                 t = float(v) if unit == "s" else (1.0 / v if v else math.inf)
                 try:
