@@ -38,8 +38,8 @@ _spec.loader.exec_module(fuzz)
 # numpy's overflow warnings of absurd inputs (1e308 twists): the outputs are what is checked
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
-FAST = settings(max_examples=150, suppress_health_check=list(HealthCheck))
-SLOW = settings(max_examples=40, suppress_health_check=list(HealthCheck))
+FAST = settings(max_examples=100, suppress_health_check=list(HealthCheck))
+SLOW = settings(max_examples=25, suppress_health_check=list(HealthCheck))
 
 #: (target, kind, text in the problem's error or place) of failures the fuzzer found in
 #: modules other branches of issue 17 fix; each has a strict xfail below.
