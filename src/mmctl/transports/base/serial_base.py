@@ -162,11 +162,14 @@ class SerialBase:
 
     def send_twist(self, vx: float, vy: float, wz: float) -> Twist:
         """One WHEEL_CMD (wheel speeds scaled to the limit, direction kept); returns the
-        twist commanded.  Raises SafetyFault (after writing zero) when unhealthy."""
+        twist commanded.  Raises SafetyFault (after writing zero) when unhealthy, and
+        SafetyFault(NON_FINITE) for a twist whose wheel speeds are not finite."""
         if not self._enabled:
             raise TransportError("send_twist() before enable()")
         try:
             wheels, twist = self._command(vx, vy, wz)
+            if not np.all(np.isfinite(wheels)):  # a finite twist near 1e308 overflows
+                raise ValueError(f"wheel speeds {wheels} for the twist ({vx}, {vy}, {wz})")
         except ValueError:
             self.stop()
             raise SafetyFault(FaultCause.NON_FINITE, twist=(vx, vy, wz)) from None
