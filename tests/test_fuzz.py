@@ -42,17 +42,10 @@ FAST = settings(max_examples=100, suppress_health_check=list(HealthCheck))
 SLOW = settings(max_examples=25, suppress_health_check=list(HealthCheck))
 
 #: (target, kind, text in the problem's error or place) of failures the fuzzer found in
-#: modules other branches of issue 17 fix; each has a strict xfail below.
-OPEN_BUGS: list[tuple[str, str, str]] = [
-    # deep JSON nesting: RecursionError escapes ControlServer._dispatch (issue 17 item 4)
-    ("ipc_dispatch", "crash", "RecursionError"),
-    ("ipc_socket", "invariant", "RecursionError"),
-    # a config file that is not UTF-8: UnicodeDecodeError from load_config
-    ("config_yaml", "crash", "UnicodeDecodeError"),
-    # a time the schema accepts but Python's timeouts refuse (issue 17 item 6)
-    ("config_values", "invariant", "overflows Python's timeouts"),
-    ("config_yaml", "invariant", "overflows Python's timeouts"),
-]
+#: modules still to fix (each with a strict xfail replaying its input); empty: the bugs it
+#: listed (deep JSON nesting, a non-UTF-8 config, timeouts Python cannot represent) are
+#: fixed and their replays are the `test_fixed_*` regressions below.
+OPEN_BUGS: list[tuple[str, str, str]] = []  # none open: the fixed ones are regressions below
 
 
 def _open_bug(target: str, problem: Any) -> bool:
@@ -368,27 +361,22 @@ def test_the_tool_runs_and_reports_json(capsys: pytest.CaptureFixture[str]) -> N
 _NEST = b"[" * 50_000 + b"]" * 50_000
 
 
-@pytest.mark.xfail(strict=True, reason="issue 17 item 4: fixed on the control socket's branch")
-def test_open_bug_deep_json_nesting_escapes_the_dispatcher(ipc_dispatch: Any) -> None:
+def test_fixed_deep_json_nesting_gets_an_error_reply_from_the_dispatcher(ipc_dispatch: Any) -> None:
     assert fuzz.run_one(ipc_dispatch, _NEST[:60_000]) is None
 
 
-@pytest.mark.xfail(strict=True, reason="issue 17 item 4: fixed on the control socket's branch")
-def test_open_bug_deep_json_nesting_kills_the_connection(ipc_socket: Any) -> None:
+def test_fixed_deep_json_nesting_leaves_the_connection_serving(ipc_socket: Any) -> None:
     assert fuzz.run_one(ipc_socket, _NEST[:60_000]) is None
 
 
-@pytest.mark.xfail(strict=True, reason="a config file that is not UTF-8: fixed on the "
-                   "config branch")
-def test_open_bug_config_file_not_utf8(config_yaml: Any) -> None:
+def test_fixed_a_config_file_not_utf8_is_a_config_error(config_yaml: Any) -> None:
     assert fuzz.run_one(config_yaml, b"name: \xff\n") is None
 
 
-@pytest.mark.xfail(strict=True, reason="issue 17 item 6: fixed on the config branch")
 @pytest.mark.parametrize("data", [
     {"daemon": {"ready_timeout": 1e300}},
     {"loop": {"rate_hz": 1e-300}},
     {"sensor": {"wrench": {"stale_timeout": 1e300}}},
 ])
-def test_open_bug_timeouts_python_cannot_represent(config_values: Any, data: Any) -> None:
+def test_fixed_timeouts_python_cannot_represent_are_config_errors(config_values: Any, data: Any) -> None:
     assert fuzz.run_one(config_values, data) is None
