@@ -13,12 +13,13 @@ from __future__ import annotations
 import faulthandler
 import itertools
 import os
-import socket
 from collections.abc import Iterator
 
 import pytest
 import structlog
 from hypothesis import HealthCheck, settings
+
+from mmctl.sim.fake_ur.server import ports_free
 
 settings.register_profile(
     "mmctl",
@@ -37,15 +38,6 @@ def _worker_index() -> int:
     return int(digits or 0)
 
 
-def _ports_free(host: str) -> bool:
-    for port in _UR_PORTS:
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind((host, port))
-            except OSError:
-                return False
-    return True
 
 
 @pytest.fixture
@@ -59,7 +51,7 @@ def loopback_host() -> str:
     for _ in range(1000):
         n = next(_counter)
         host = f"127.{10 + _worker_index()}.{(block + n // 250) % 250}.{n % 250 + 2}"
-        if _ports_free(host):
+        if ports_free(host, _UR_PORTS):
             return host
     raise RuntimeError("no loopback address with free UR ports")
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import itertools
 import os
-import socket
+
+from mmctl.sim.fake_ur.server import ports_free
 
 PORTS = (29999, 30003, 30004, 29536)
 _counter = itertools.count()
@@ -23,17 +24,8 @@ def free_loopback_host(block: int) -> str:
     worker = 10 + int(digits or 0)
     for _ in range(250):
         host = f"127.{worker}.{block}.{(os.getpid() + next(_counter)) % 250 + 2}"
-        if _ports_free(host):
+        if ports_free(host, PORTS):
             return host
     raise RuntimeError(f"no loopback address 127.{worker}.{block}.* with free ports")
 
 
-def _ports_free(host: str) -> bool:
-    for port in PORTS:
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind((host, port))
-            except OSError:
-                return False
-    return True

@@ -191,6 +191,7 @@ def _cpu() -> float:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from mmctl.bench.loop import tare_and_enable
     from mmctl.errors import MmctlError
     from mmctl.runtime.client import load
     from mmctl.runtime.factory import create_daemon
@@ -224,18 +225,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     try:
         daemon.open()
         daemon.start()
-        daemon.call("tare")
-        while daemon.core.taring:
-            time.sleep(0.01)
-        deadline = time.monotonic() + 30.0
-        while True:
-            try:
-                daemon.call("enable")
-                break
-            except MmctlError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.1)
+        tare_and_enable(daemon)
         assert daemon.sim is not None
         daemon.sim.start_human()
         time.sleep(1.0)

@@ -23,13 +23,35 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from mmctl.errors import MmctlError
+
+if TYPE_CHECKING:
+    from mmctl.runtime.daemon import Daemon
 
 #: issue 15's targets on this 2-core machine: loop figures, the daemon's control step
 #: against the same step back to back (``idk_step``), and force to command
 TARGETS = {"compute_p99_us": 300.0, "latency_p99_us": 50.0, "miss_rate": 0.0005,
            "step_ratio_p50": 1.25, "force_to_command_p99_us": 2000.0}
 
+
+
+def tare_and_enable(daemon: Daemon, timeout: float = 30.0) -> None:
+    """Tare (hands off), then arm the started daemon, retrying ``enable`` for
+    ``timeout`` [s] while a condition flickers at start-up."""
+    daemon.call("tare")
+    while daemon.core.taring:
+        time.sleep(0.01)
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            daemon.call("enable")
+            return
+        except MmctlError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=10.0,
@@ -99,7 +121,6 @@ def _figures(snap: Any, step_us: Any) -> dict[str, float | int]:
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from mmctl.errors import MmctlError
     from mmctl.runtime.client import load
     from mmctl.runtime.logging import setup_logging
     from mmctl.runtime.pmqos import MAX_US
@@ -169,7 +190,6 @@ def _stdout_to_stderr() -> Iterator[None]:
 
 def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
     """Run the daemon's loop with both waits in alternating windows; their figures."""
-    from mmctl.errors import MmctlError
     from mmctl.runtime.factory import create_daemon
     from mmctl.telemetry.service import TelemetryService
 
@@ -188,18 +208,7 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         daemon.start()
         lat = daemon.cpu_latency
         result["cpu_dma_latency_us"] = lat.us if lat is not None and lat.held else None
-        daemon.call("tare")
-        while daemon.core.taring:
-            time.sleep(0.01)
-        deadline = time.monotonic() + 30.0
-        while True:
-            try:
-                daemon.call("enable")
-                break
-            except MmctlError:  # a condition flickering at start-up: retry
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.1)
+        tare_and_enable(daemon)
         if daemon.sim is None:
             raise MmctlError("bench loop needs the simulated robot's own process "
                              "(sim.enabled, CAN on socketcand)")

@@ -46,7 +46,6 @@ import json
 import os
 import random
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -356,15 +355,6 @@ def verdict(report: dict[str, Any]) -> tuple[bool, list[str]]:
 
 
 # ------------------------------------------------------------------------ the run --
-def _ports_free(host: str) -> bool:
-    for port in _PORTS:
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind((host, port))
-            except OSError:
-                return False
-    return True
 
 
 class Soak:
@@ -998,7 +988,9 @@ def run(args: argparse.Namespace) -> int:
                          f"{', '.join(FAULT_CAUSES)}")
     if not args.host.startswith("127."):
         raise MmctlError(f"--host {args.host}: a loopback address (127.x.y.z)")
-    if not _ports_free(args.host):
+    from mmctl.sim.fake_ur.server import ports_free
+
+    if not ports_free(args.host, _PORTS):
         raise MmctlError(f"--host {args.host}: the fake UR's or socketcand's ports are in "
                          "use there (another simulated robot?); choose another 127.x.y.z")
     tmp = Path(tempfile.mkdtemp(prefix="mmctl-soak-"))

@@ -33,6 +33,19 @@ DASHBOARD_PORT = 29999
 SCRIPT_PORT = 30003
 RTDE_PORT = 30004
 PORTS = (DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT)
+
+
+def ports_free(host: str, ports: Sequence[int] = PORTS) -> bool:
+    """Whether every TCP port of ``ports`` can be bound on ``host`` right now (where a
+    fake UR, and a simulated robot's socketcand server, may go)."""
+    for port in ports:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((host, port))
+            except OSError:
+                return False
+    return True
 PERIOD_NS = int(PERIOD * 1e9)
 MAX_CATCH_UP = 50
 """Controller periods stepped back to back at most after a stall; beyond, the clock skips."""
