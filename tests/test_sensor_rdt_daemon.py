@@ -107,6 +107,10 @@ def test_a_rebooted_rdt_sensor_faults_recovers_and_stays_latched_until_enable(
         rig.step_until("healthy", lambda: rig.healthy_for(3))
         rig.enable()
         assert d.safety.armed
+        # a stream as long as a sensor's (hundreds of records): the rebooted one's first
+        # records are then behind it, whichever of them the client sees first (a START
+        # re-sent while the first new record is in flight may cost that record)
+        rig.step_until("a long stream", lambda: sensor.stats().received > 300)
         starts = fake.starts
 
         with capture_logs() as logs:
