@@ -411,3 +411,29 @@ def test_disable_without_waiting_still_switches_off_only_at_rest(
     assert sorted(nid for _, nid, _ in offs) == sorted(cfg.base.canopen.node_ids)
     assert all(abs(v) < 1e-9 for _, _, v in offs)
     wait_until(lambda: [s.state for s in fakes.states()] == ["READY TO SWITCH ON"] * 4)
+
+
+def test_enable_right_after_a_stop_waits_for_the_shutdown_ramp(
+    cfg: Config, fakes: FakeDrives, base: CanopenBase
+) -> None:
+    """The soak's drive_fault: the loop's stop sends SHUTDOWN and returns; an enable at
+    once found the drives still in OPERATION ENABLED (ramping to rest, 0x605B = 1) and
+    took them as enabled; at rest they entered READY TO SWITCH ON and the armed robot
+    faulted.  Enable now takes every drive through the whole sequence: the ramp ends,
+    then shutdown -> switch on -> enable operation, and the drives stay enabled."""
+    drive_at(base, fakes, FAST, 5.0)
+    base.disable(wait=False)
+    assert [s.state for s in fakes.states()] == ["OPERATION ENABLED"] * 4  # still ramping
+    base.enable()
+    assert [s.state for s in fakes.states()] == ["OPERATION ENABLED"] * 4
+    # past the longest ramp (5.4 rad/s at the profile deceleration): still enabled, no fault
+    ramp = 5.5 / wheel_decel(cfg)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < ramp + 0.3:
+        base.send_twist(0.0, 0.0, 0.0)
+        base.read_odometry()
+        base.check()
+        time.sleep(PERIOD)
+    assert [s.state for s in fakes.states()] == ["OPERATION ENABLED"] * 4
+    offs = [v for _, _, v in fakes.power_offs()]
+    assert all(abs(v) < 1e-9 for v in offs)  # never switched off while turning

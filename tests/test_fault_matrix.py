@@ -21,6 +21,7 @@ in ``test_daemon_faults.py``.
 from __future__ import annotations
 
 import math
+import threading
 import types
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -830,6 +831,58 @@ def test_a_latched_arm_link_fault_reconnects_even_when_reads_look_fine(
     rig.arm.script_refused = False
     rig.enable()
     assert rig.daemon.safety.armed
+
+
+def test_the_loop_cycles_on_while_the_base_enables(make_rig: Callable[..., Rig]) -> None:
+    """The base's enable waits for SDO answers and for wheels still ramping down on the
+    last stop (up to ``base.canopen.stop_timeout``).  On the loop thread it stalled the
+    loop, long enough for the arm's RTDE watchdog to stop the control script (the soak's
+    ``arm_not_playing`` right after an enable).  It runs on the enabling thread now:
+    the loop cycles on and feeds the arm's watchdog, leaves the base alone, and arms
+    once the base is enabled."""
+    rig = make_rig()
+    rig.step(3)
+    entered, release = threading.Event(), threading.Event()
+    scripted_enable = rig.base.enable
+    reads: list[int] = []
+    scripted_read = rig.base.read_odometry
+
+    def slow_enable() -> None:
+        entered.set()
+        assert release.wait(60.0)
+        scripted_enable()
+
+    def counted_read() -> Odometry:
+        reads.append(rig.daemon.cycles)
+        return scripted_read()
+
+    rig.base.enable = slow_enable  # type: ignore[method-assign]
+    rig.base.read_odometry = counted_read  # type: ignore[method-assign]
+    outcome: list[object] = []
+
+    def operator() -> None:
+        try:
+            outcome.append(rig.daemon.call("enable")["state"])
+        except Exception as exc:  # noqa: BLE001 -- asserted below
+            outcome.append(exc)
+
+    t = threading.Thread(target=operator)
+    t.start()
+    try:
+        assert entered.wait(60.0)
+        for _ in range(5):  # cycles while the base is enabling
+            assert names(rig.step()) == ["arm.kick_watchdog"]
+        assert rig.daemon.safety.state is SafetyState.DISARMED
+        assert rig.daemon.safety.active == {
+            FaultCause.BASE_LINK: {"device": "base", "why": "enabling"}}
+        assert reads == []  # the enabling thread has the base
+    finally:
+        release.set()
+        t.join(60.0)
+    assert outcome == ["armed"]
+    rig.sensor.force = PUSH.copy()
+    assert_moves(rig.step(2))
+    assert reads  # the loop reads the base again
 
 
 def test_the_sample_hook_runs_after_the_stop_and_before_the_motion(

@@ -14,7 +14,7 @@ from mmctl.control.mecanum import wheel_matrix
 from mmctl.model import RobotModel
 
 CFG = default_config()
-LIM = Limits(CFG.limits, CFG.base.mecanum)
+LIM = Limits(CFG.limits, CFG.base.mecanum, CFG.arm.speedj_acceleration)
 MODEL = RobotModel(CFG.robot)
 L = CFG.limits
 W = wheel_matrix(CFG.base.mecanum)
@@ -32,13 +32,21 @@ def _q(rng: np.random.Generator, near_limit: bool) -> np.ndarray:
     return np.concatenate((qa, rng.uniform(-2, 2, 3)))
 
 
+def braking_cap(distance_to_rest: np.ndarray) -> np.ndarray:
+    """Speed [rad/s] a joint may have toward its limit: it can still stop (on 80 % of
+    the acceleration limit) by the point ``position_margin`` inside the limit."""
+    a_b = 0.8 * np.minimum(np.array(L.joint_acceleration), CFG.arm.speedj_acceleration)
+    v = np.sqrt(2 * a_b * np.clip(distance_to_rest, 0, None))
+    return np.minimum(np.array(L.joint_velocity), v)
+
+
 def _check_velocity_bounds(x: np.ndarray, q: np.ndarray, J: np.ndarray) -> None:
     vmax = np.array(L.joint_velocity)
     assert np.all(np.abs(x[:6]) <= vmax * (1 + EPS))
-    to_max = (np.array(L.joint_position_max) - q[:6]) / L.position_margin
-    to_min = (q[:6] - np.array(L.joint_position_min)) / L.position_margin
-    assert np.all(x[:6] <= vmax * np.clip(to_max, 0, 1) + EPS)
-    assert np.all(-x[:6] <= vmax * np.clip(to_min, 0, 1) + EPS)
+    to_max = np.array(L.joint_position_max) - L.position_margin - q[:6]
+    to_min = q[:6] - np.array(L.joint_position_min) - L.position_margin
+    assert np.all(x[:6] <= braking_cap(to_max) + EPS)
+    assert np.all(-x[:6] <= braking_cap(to_min) + EPS)
     assert math.hypot(x[6], x[7]) <= L.base_linear_velocity * (1 + EPS)
     assert abs(x[8]) <= L.base_angular_velocity * (1 + EPS)
     assert np.abs(W @ x[6:]).max() <= L.wheel_velocity * (1 + EPS)
@@ -96,12 +104,51 @@ def test_no_motion_toward_a_joint_beyond_its_limit_but_away_is_free() -> None:
     away = np.zeros(9)
     away[2] = -0.5
     assert np.allclose(LIM.apply(away, np.zeros(9), q, J, 1.0).qdot, away)
-    # 10 % into the braking zone's depth the speed toward the limit is 10 % of v_max
-    q[2] = L.joint_position_max[2] - L.position_margin / 10
+    # inside the margin: at rest toward the limit
+    q[2] = L.joint_position_max[2] - L.position_margin / 2
     J = MODEL.jacobian(q)
     fast = np.zeros(9)
     fast[2] = 1.0
-    assert np.isclose(LIM.apply(fast, np.zeros(9), q, J, 1.0).qdot[2], L.joint_velocity[2] / 10)
+    assert LIM.apply(fast, np.zeros(9), q, J, 1.0).qdot[2] == 0.0
+    # 0.05 rad before the rest point: sqrt(2 * 0.8 * 4 rad/s^2 * 0.05 rad) = 0.566 rad/s
+    q[2] = L.joint_position_max[2] - L.position_margin - 0.05
+    J = MODEL.jacobian(q)
+    assert np.isclose(LIM.apply(fast, np.zeros(9), q, J, 1.0).qdot[2], math.sqrt(0.32))
+
+
+def test_a_joint_driven_at_its_limit_comes_to_rest_inside_the_margin() -> None:
+    """The soak's protective stops: wrist 3 pushed toward -2 pi at full speed (3.1 rad/s)
+    overshot a linear 0.15 rad braking zone by ~1 rad (the arm follows speedJ at 4
+    rad/s^2) into the controller's joint limit.  Here the limited command drives the
+    simulated robot's joints (the plant the fake UR runs, at the speedJ acceleration)
+    toward each limit of each joint, from full speed: every joint stops inside its
+    limit, within the margin, and no closer to the limit than the margin allows."""
+    from mmctl.sim.joints import JointPlant
+
+    for j in range(6):
+        for sign in (1.0, -1.0):
+            q = np.concatenate((MODEL.q_des[:6], np.zeros(3)))
+            limit = L.joint_position_max[j] if sign > 0 else L.joint_position_min[j]
+            q[j] = limit - sign * 3.0  # 3 rad away: room to reach full speed and brake
+            plant = JointPlant(list(q[:6]), q_min=L.joint_position_min[j] - 1.0,
+                               q_max=L.joint_position_max[j] + 1.0)
+            want = np.zeros(9)
+            want[j] = sign * 10.0  # far above any speed limit
+            prev = np.zeros(9)
+            peak = 0.0
+            for _ in range(3000):  # 6 s
+                q[:6] = plant.q
+                x = LIM.apply(want, prev, q, MODEL.jacobian(q), T).qdot
+                prev = x
+                plant.speed(list(x[:6]), CFG.arm.speedj_acceleration)
+                plant.step(T)
+                peak = max(peak, abs(plant.qd[j]))
+            # fast: the end-effector speed cap may bind first (joint 1 turns the whole arm)
+            assert peak > 1.0, (j, sign, peak)
+            stop = plant.q[j]
+            assert abs(plant.qd[j]) < 1e-9, (j, sign)  # at rest
+            inside = sign * (limit - stop)  # how far inside the limit it stopped
+            assert L.position_margin * 0.9 <= inside <= L.position_margin + 0.01, (j, sign, inside)
 
 
 def test_non_finite_gives_zero() -> None:

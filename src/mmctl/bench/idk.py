@@ -112,7 +112,7 @@ def _strategies(cfg: Config, cases: _Cases) -> dict[str, Callable[[int], Vec]]:
     from mmctl.control.strategies import Problem, make_strategies
     from mmctl.model import RobotModel
 
-    limits = Limits(cfg.limits, cfg.base.mecanum)
+    limits = Limits(cfg.limits, cfg.base.mecanum, cfg.arm.speedj_acceleration)
     solvers = make_strategies(cfg, limits)
     model = cases.model
     zero = np.zeros(9)
@@ -163,7 +163,7 @@ def _osqp_cycle(cfg: Config, cases: _Cases) -> Callable[[int], Vec] | None:
         return None
     from mmctl.control.limits import Limits
 
-    limits = Limits(cfg.limits, cfg.base.mecanum)
+    limits = Limits(cfg.limits, cfg.base.mecanum, cfg.arm.speedj_acceleration)
     model = cases.model
     T = 1.0 / cfg.loop.rate_hz
     rho = cfg.idk.constrained.task_weight

@@ -166,7 +166,9 @@ class LimitsConfig:
         why="the UR10e's joints turn +-360 deg",
     )
     position_margin: float = param(
-        0.15, unit="rad", ge=0.001, le=1.0, doc="braking zone before a joint position limit",
+        0.15, unit="rad", ge=0.001, le=1.0,
+        doc="how far inside a joint position limit the position braking brings a joint "
+        "to rest (it brakes on 80 % of the acceleration limits from wherever that takes)",
         why="from a milliradian to ~57 deg (a margin in degrees, e.g. 10, is caught)"
     )
     base_linear_velocity: float = param(

@@ -170,7 +170,7 @@ class Controller:
         self.cfg = cfg
         self.model = model if model is not None else RobotModel(cfg.robot)
         self.admittance = Admittance.from_config(cfg.admittance)
-        self.limits = Limits(cfg.limits, cfg.base.mecanum)
+        self.limits = Limits(cfg.limits, cfg.base.mecanum, cfg.arm.speedj_acceleration)
         self.strategies: dict[str, IdkStrategy] = make_strategies(cfg, self.limits)
         self._solvers = tuple(self.strategies[n] for n in SOLVERS)
         self.gain = np.array(cfg.idk.null_gain)

@@ -148,6 +148,12 @@ class Daemon(OperatorCommands, CycleDriver):
         """An arm reconnect runs off the loop thread (set and cleared around it): the
         loop then leaves the arm alone and counts it as disconnected."""
         self._arm_reconnect = threading.Lock()
+        self._base_busy = False
+        """The base's enable runs off the loop thread (it waits for SDO answers and for
+        a wheel still ramping down): the loop then leaves the base alone."""
+        self._base_enable = threading.Lock()
+        """Held by an enable from its checks to its end: one enable at a time, and the
+        shutdown waits for it before it stops the devices."""
         self._started = time.monotonic()
         self._t0_ns = 0
         self._status_text = ""
@@ -247,11 +253,17 @@ class Daemon(OperatorCommands, CycleDriver):
         log.info("daemon_stopping", reason=self.stop_reason or "shutdown")
         self.loop.stop()
         self.loop.wait(5.0)
+        co = self.cfg.base.canopen
+        enable_done = self._base_enable.acquire(timeout=co.stop_timeout + 4 * co.sdo_timeout + 2)
+        if not enable_done:
+            log.error("base_enable_still_running", why="stopping the devices anyway")
         if self.devices.connected:
             self.devices.stop(self.cfg.arm.stop_deceleration, arm=not self._arm_busy)
             self.commands_sent["stop"] += 1
             if self.safety.state is SafetyState.ARMED:
                 self.safety.disable()
+        if enable_done:
+            self._base_enable.release()
         if self.server is not None:
             try:
                 self.server.close()

@@ -101,7 +101,11 @@ class CycleDriver(_Parts):
         else:
             arm = self._read("arm", dev.arm.read_state, conditions)
         t1 = clock()
-        odom = self._read("base", dev.base.read_odometry, conditions)
+        if self._base_busy:
+            conditions[FaultCause.BASE_LINK] = {"device": "base", "why": "enabling"}
+            odom = None
+        else:
+            odom = self._read("base", dev.base.read_odometry, conditions)
         t2 = clock()
         wrench = self._read("sensor", dev.sensor.read, conditions)
         t3 = clock()

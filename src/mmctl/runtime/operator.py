@@ -24,6 +24,8 @@ _BASE_CAUSES = frozenset({FaultCause.DRIVE_FAULT, FaultCause.DRIVE_HEARTBEAT,
                           FaultCause.BASE_LINK})
 _ARM_RECONNECT_CAUSES = frozenset({FaultCause.ARM_DISCONNECTED, FaultCause.ARM_STALE,
                                    FaultCause.ARM_NOT_PLAYING})
+#: [s] the least an enable's last step (on the loop thread) is given to be taken.
+_FINISH_MIN = 0.5
 
 
 if TYPE_CHECKING:
@@ -135,11 +137,20 @@ class OperatorCommands(_Parts):
             log.warning("sim_hold_failed", error=str(exc))
 
     def _enable_request(self, budget: float) -> dict[str, Any]:
-        """Operator re-arm within ``budget`` [s]: the checks and the arming run on the
-        loop thread (:meth:`_enable`); when the arm's link or program is lost, the arm
-        reconnects first on *this* thread (it takes seconds), while the loop keeps its
-        period and leaves the arm alone.  An enable reported as failed (refused, the
-        reconnect failed, the budget ran out) never takes effect later."""
+        """Operator re-arm within ``budget`` [s].  Neither step that waits for a device
+        runs on the loop thread, which keeps its period meanwhile:
+
+        1. when the arm's link or program is lost, the arm reconnects on *this* thread
+           (it takes seconds) while the loop leaves the arm alone;
+        2. the loop checks every condition but the base's (:meth:`_enable_check`:
+           refused at once when one is present);
+        3. the base enables on *this* thread (SDO round trips; a wheel still ramping
+           down on the last stop is waited for), the loop leaving the base alone;
+        4. the loop checks again and arms (:meth:`_enable_finish`), or refuses and stops.
+
+        An enable reported as failed (refused, the reconnect failed, the budget ran out)
+        never takes effect later: a base enabled for an enable that then failed is
+        disabled again."""
         deadline = time.monotonic() + budget
         if self._on_loop(self._begin_enable, budget):
             with self._arm_reconnect:
@@ -147,11 +158,28 @@ class OperatorCommands(_Parts):
                     self._reconnect_arm()
                 finally:
                     self._arm_busy = False
-        left = deadline - time.monotonic()
-        if left <= 0:
-            raise MmctlError(f"refused to enable: the arm's reconnect took longer than "
-                             f"{budget:g} s (daemon.command_timeout or the client's timeout)")
-        return self._then_status(self._on_loop(self._enable, left))
+        with self._base_enable:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise MmctlError(f"refused to enable: the arm's reconnect took longer than "
+                                 f"{budget:g} s (daemon.command_timeout or the client's "
+                                 "timeout)")
+            if not self._on_loop(self._enable_check, left):
+                return self._then_status(None)  # armed already
+            try:
+                failure = self._enable_base()
+            finally:
+                self._base_busy = False
+            try:
+                # the drives' command watchdog runs from the enable: the loop arms (and
+                # sends targets) in its next cycle, whatever is left of the budget
+                self._on_loop(lambda: self._enable_finish(failure),
+                              max(deadline - time.monotonic(), _FINISH_MIN))
+            except BaseException:
+                if failure is None and not self.safety.armed:
+                    self._disable_base_after_failed_enable()
+                raise
+        return self._then_status(None)
 
     def _then_status(self, _done: None) -> dict[str, Any]:
         """A command's reply: the status, built on the caller's thread (never on the
@@ -172,21 +200,10 @@ class OperatorCommands(_Parts):
         self._arm_busy = True
         return True
 
-    def _enable(self) -> None:
-        """Operator re-arm (loop thread).
-
-        Conditions other than the base's must be gone (else EnableRefused); the arm is
-        judged on a fresh read.  The base latches its faults until ``enable()`` resets
-        them, so it is enabled first and its health re-checked: a drive still faulty or
-        silent refuses the enable.
-        """
-        if self.safety.armed:
-            return
-        if self.cycles == 0:
-            raise MmctlError("refused to enable: no control cycle has run yet")
-        if self.core.taring:
-            raise MmctlError("refused to enable: a tare is in progress (the handle must not "
-                             "be touched until it ends)")
+    def _other_conditions(self) -> dict[FaultCause, dict[str, Any]]:
+        """Loop thread: the conditions an enable must find gone, but the base's (its
+        faults are latched until its own enable resets them); the arm judged on a fresh
+        read."""
         other = {c: d for c, d in self.safety.active.items()
                  if c not in _BASE_CAUSES and not c.value.startswith("arm_")}
         if self.loop.consecutive_misses == 0:
@@ -197,28 +214,74 @@ class OperatorCommands(_Parts):
             other[exc.cause] = {"device": "arm", **exc.details}
         except TransportError as exc:
             other[FaultCause.ARM_DISCONNECTED] = {"device": "arm", "error": str(exc)}
+        return other
+
+    def _enable_check(self) -> bool:
+        """Loop thread, before the base's enable: False when armed already; refused
+        (EnableRefused naming them) while a condition but the base's is present; else
+        the loop leaves the base to the enable from now on (True)."""
+        if self.safety.armed:
+            return False
+        if self.cycles == 0:
+            raise MmctlError("refused to enable: no control cycle has run yet")
+        if self.core.taring:
+            raise MmctlError("refused to enable: a tare is in progress (the handle must not "
+                             "be touched until it ends)")
+        other = self._other_conditions()
         if other:
             self.safety.enable(other)  # raises EnableRefused naming them
+        self._base_busy = True
+        return True
+
+    def _enable_base(self) -> BaseException | None:
+        """The caller's thread: enable the base and check its health; what went wrong,
+        for :meth:`_enable_finish` to refuse with (the base disables itself again when
+        its enable fails)."""
         try:
             self.devices.base.enable()
             self.devices.base.check()
-        except SafetyFault as exc:
-            self.devices.stop(self.cfg.arm.stop_deceleration, wait=False)
-            self.safety.enable({exc.cause: {"device": "base", **exc.details}})  # refused
         except (MmctlError, OSError) as exc:
+            return exc
+        return None
+
+    def _enable_finish(self, failure: BaseException | None) -> None:
+        """Loop thread, after the base's enable: refuse (and stop) when the base failed
+        or another condition came up meanwhile; else arm."""
+        if self.safety.armed:
+            return
+        if failure is None:
+            try:
+                self.devices.base.check()
+            except (MmctlError, OSError) as exc:
+                failure = exc
+        if isinstance(failure, SafetyFault):
+            self.devices.stop(self.cfg.arm.stop_deceleration, wait=False)
+            self.safety.enable({failure.cause: {"device": "base", **failure.details}})
+        if failure is not None:
             self.devices.stop(self.cfg.arm.stop_deceleration, wait=False)
             try:
                 self.devices.base.check()  # name the cause if the base knows it
             except SafetyFault as fault:
-                self.safety.enable({fault.cause: {"device": "base", "error": str(exc),
+                self.safety.enable({fault.cause: {"device": "base", "error": str(failure),
                                                   **fault.details}})  # refused
             except (MmctlError, OSError):
                 pass
-            raise MmctlError(f"refused to enable: the base did not enable ({exc})") from None
+            raise MmctlError(f"refused to enable: the base did not enable ({failure})")
+        other = self._other_conditions()
+        if other:  # came up while the base was enabled
+            self.devices.stop(self.cfg.arm.stop_deceleration, wait=False)
+            self.safety.enable(other)  # raises EnableRefused naming them
         self.safety.enable({})
         self.core.reset()
         self.loop.reset_misses()
         self._update_status()
+
+    def _disable_base_after_failed_enable(self) -> None:
+        """The base was enabled for an enable that did not arm: switch it off again."""
+        try:
+            self.devices.base.disable(wait=False)
+        except (MmctlError, OSError) as exc:
+            log.warning("base_enable_undo_failed", error=str(exc))
 
     def _reconnect_arm(self) -> None:
         """Enable after a lost link / stopped program (off the loop thread, the loop

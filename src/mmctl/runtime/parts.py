@@ -53,6 +53,8 @@ class DaemonParts:
     _limiter: RateLimiter
     _arm_busy: bool
     _arm_reconnect: threading.Lock
+    _base_busy: bool
+    _base_enable: threading.Lock
     _commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]]
     _stop_requested: threading.Event
     _healthy_cycle: threading.Event

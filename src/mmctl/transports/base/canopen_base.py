@@ -84,6 +84,8 @@ _ZERO = np.zeros(4)
 #: CiA 402 states in which the power stage is on (or a stopping ramp still runs).
 _MOVING = frozenset({ds.Cia402State.OPERATION_ENABLED, ds.Cia402State.QUICK_STOP_ACTIVE,
                      ds.Cia402State.FAULT_REACTION_ACTIVE})
+#: States in which the power stage is off or the drive holds at rest by itself.
+_SETTLED = frozenset(set(ds.Cia402State) - _MOVING - {ds.Cia402State.UNKNOWN})
 _TARGET = struct.Struct("<i")  # RPDO1: target velocity 0x60FF, INTEGER32 [counts/s]
 
 
@@ -233,7 +235,9 @@ class CanopenBase:
         for (it is bringing its wheel to rest; no reset is possible there) until FAULT,
         at most ``base.canopen.stop_timeout``; in FAULT the reset edge (controlword bit
         7) is sent, and repeated if the drive stays in FAULT; a drive in QUICK STOP
-        ACTIVE is waited for until it has come to rest.  Then shutdown -> switch on ->
+        ACTIVE is waited for until it has come to rest.  A drive found in OPERATION
+        ENABLED may still be ramping down on the stop's SHUTDOWN (its statusword changes
+        only at rest): it gets SHUTDOWN and is waited for until its power stage is off.  Then shutdown -> switch on ->
         enable operation.  Blocks up to about ``stop_timeout`` + a few ``sdo_timeout``.
 
         Raises SafetyFault(DRIVE_FAULT) when a drive stays in FAULT, TransportError when
@@ -618,6 +622,18 @@ class CanopenBase:
         sdo = node.sdo
         sw = sdo[ds.STATUSWORD].raw
         state = ds.decode_statusword(sw)
+        if state is ds.Cia402State.OPERATION_ENABLED:
+            # maybe ramping to rest on a SHUTDOWN the loop's stop sent (0x605B = 1: the
+            # statusword shows OPERATION ENABLED until the wheel is at rest, then READY
+            # TO SWITCH ON): taken as enabled, it would switch off under the armed robot.
+            # SHUTDOWN again (a drive at rest switches off at once) and wait for the end
+            # of the ramp; then the whole sequence from a known state.
+            sdo[ds.CONTROLWORD].raw = ds.Controlword.SHUTDOWN
+            sw, state = self._wait_state(i, _SETTLED, self._co.stop_timeout, _REST_POLL)
+            if state in _MOVING:
+                raise TransportError(
+                    f"drive {nid} still in {state.value} {self._co.stop_timeout} s after "
+                    f"SHUTDOWN (statusword 0x{sw:04X})")
         if state is ds.Cia402State.FAULT_REACTION_ACTIVE:
             # still bringing its wheel to rest: CiA 402 has no reset from here, a reset
             # edge now is lost; wait for FAULT
@@ -667,8 +683,7 @@ class CanopenBase:
             sdo[ds.CONTROLWORD].raw = ds.Controlword.SHUTDOWN
         if not wait:
             return
-        settled = set(ds.Cia402State) - _MOVING - {ds.Cia402State.UNKNOWN}
-        sw, state = self._wait_state(i, settled, self._co.stop_timeout, _REST_POLL)
+        sw, state = self._wait_state(i, _SETTLED, self._co.stop_timeout, _REST_POLL)
         self._statusword[i] = sw
         if state in _MOVING:
             speed = sdo[ds.VELOCITY_ACTUAL].raw * self._rad_per_count
