@@ -211,6 +211,41 @@ def test_a_request_and_shutdown_of_the_sending_side_is_answered(server: ControlS
     s.close()
 
 
+def test_an_over_long_line_gets_its_error_and_the_connection_closes_at_once(
+        tmp_path: Path, handler: Handler) -> None:
+    """A client still sending a 300 kB line: the server answers after MAX_LINE bytes and
+    closes, so the client's blocked send ends.  The fuzzer found the close missing when
+    the error reply went out at once (the connection then waited, unread and unwritten,
+    for the idle sweep: 10 s without a reply).  The idle timeout here is beyond the
+    test's patience: only the close itself can end the client's send."""
+    srv = serve(tmp_path, handler, idle_timeout=10 * PATIENCE)
+    try:
+        for _ in range(20):  # the reply went out at once in some runs, not in others
+            s = connect(srv.path)
+            sent: list[BaseException | None] = []
+
+            def send(s: socket.socket = s, sent: list[BaseException | None] = sent) -> None:
+                try:
+                    s.sendall(b'{"cmd": "status", "y": ' * 15_000 + b"\n")
+                    sent.append(None)
+                except OSError as exc:  # the server closed under the send: expected
+                    sent.append(exc)
+
+            sender = threading.Thread(target=send)
+            sender.start()
+            reply = json.loads(read_line(s))
+            assert reply == {"ok": False, "error": "request longer than 65536 bytes"}
+            sender.join(PATIENCE)
+            assert not sender.is_alive(), "the client's send still blocked: not closed"
+            assert isinstance(sent[0], (BrokenPipeError, ConnectionResetError))
+            s.close()
+        with ControlClient(srv.path, timeout=PATIENCE) as c:
+            assert c.call("status") == {"state": "disarmed"}
+    finally:
+        handler.release.set()
+        srv.close()
+
+
 def test_deep_nesting_gets_one_error_reply(server: ControlServer) -> None:
     with ControlClient(server.path, timeout=PATIENCE) as c:
         deep = c.raw(b"[" * 5000)

@@ -574,14 +574,15 @@ class ControlServer:
             if end < 0:
                 if len(conn.inbuf) > MAX_LINE:
                     self.errors += 1
+                    # closing first: a reply that goes out at once drops the connection
+                    conn.closing = True
                     self._reply(conn, {"ok": False,
                                        "error": f"request longer than {MAX_LINE} bytes"})
-                    conn.closing = True
                 break
             if end > MAX_LINE:
                 self.errors += 1
-                self._reply(conn, {"ok": False, "error": f"request longer than {MAX_LINE} bytes"})
                 conn.closing = True
+                self._reply(conn, {"ok": False, "error": f"request longer than {MAX_LINE} bytes"})
                 break
             if not conn.inbuf[:end].strip():
                 del conn.inbuf[:end + 1]
