@@ -20,6 +20,7 @@ in ``test_daemon_faults.py``.
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 import types
@@ -51,6 +52,8 @@ if TYPE_CHECKING:
 HOST = "scripted-ur"
 PUSH = np.array([20.0, 0.0, 0.0])  # [N] sensor frame: above the dead band, below the limit
 Q_SINGULAR = np.array([0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0])  # stretched up
+ENABLING = {"enabling": {"inputs": [8, 9], "discrepancy_time": 0.021}}  # off the 2 ms grid
+HELD = 1 << 8 | 1 << 9  # both contacts of the enabling switch closed
 STOPPED = 1  # RTDE runtime state: the program is stopped
 NORMAL_MODE = 1  # RTDE safety status bit 0
 
@@ -131,6 +134,7 @@ class ScriptedArm:
         self.script_refused = False  # the controller will not run the control script
         self.checks_finite = True  # UrRtdeArm raises NON_FINITE on a non-finite sample
         self.die_at_send = False  # the link breaks under the next speed_j
+        self.inputs = HELD  # its digital inputs: the enabling switch held
         self.gone = False
         self._t = clock()
         self._last_t = math.nan
@@ -175,6 +179,11 @@ class ScriptedArm:
             raise self._lost("the arm process ended (exit code -11)")
         return True
 
+    def digital_input(self, index: int) -> bool:
+        if self.gone or not self.reachable:
+            raise self._lost("the arm process ended (exit code 0)")
+        return bool((self.inputs >> index) & 1)
+
     def kick_watchdog(self) -> None:
         self.rec.add("arm", "kick_watchdog")
         if self.gone:
@@ -198,9 +207,6 @@ class ScriptedArm:
 
     def close(self) -> None:
         self.rec.add("arm", "close")
-
-    def digital_input(self, index: int) -> bool:
-        return False
 
     def _lost(self, why: str | None, cause: FaultCause = FaultCause.ARM_DISCONNECTED,
               **details: Any) -> SafetyFault:
@@ -451,6 +457,11 @@ def assert_moves(cmds: list[Command]) -> None:
     assert np.abs(cmds[0].args[0]).max() > 0.0, cmds
 
 
+def assert_brakes(cmds: list[Command]) -> None:
+    """A cycle of an armed robot coming to rest: speedJ and the twist (maybe zero)."""
+    assert names(cmds) == ["arm.speed_j", "base.send_twist"], cmds
+
+
 def assert_still(cmds: list[Command]) -> None:
     """A cycle of a robot that is not armed: the arm's watchdog kicked, nothing else."""
     assert names(cmds) == ["arm.kick_watchdog"], cmds
@@ -530,6 +541,8 @@ class Case:
     reconnect: bool = False
     refusal: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    meanwhile: Callable[[list[Command]], None] = field(default=lambda cmds: assert_moves(cmds))
+    """What the cycles before the detection send (default: motion)."""
 
 
 def _stale_sensor(cfg: Config) -> int:
@@ -594,6 +607,12 @@ CASES = [
          refusal="refused to enable: the base did not enable [(]CAN receive thread died"),
     Case("nan_in_the_odometry", FaultCause.NON_FINITE, _set("base", odometry_nan=True),
          _set("base", odometry_nan=False)),
+    # the enabling switch: one contact opens (a broken wire); timed from the first cycle
+    # that sees the contacts disagree (released meanwhile: the robot decelerates)
+    Case("enabling_contacts_disagree", FaultCause.ENABLING_DEVICE,
+         _set("arm", inputs=1 << 8), _set("arm", inputs=HELD),
+         late=lambda cfg: late(cfg.enabling.discrepancy_time, 1.0 / cfg.loop.rate_hz) + 1,
+         extra=ENABLING, meanwhile=lambda cmds: assert_brakes(cmds)),
 ]
 
 
@@ -608,7 +627,7 @@ def test_a_fault_stops_in_its_cycle_latches_and_refuses_until_gone(
     with capture_logs() as logs:
         case.inject(rig)
         for _ in range(n):  # not yet past the timeout: still armed, still moving
-            assert_moves(rig.step())
+            case.meanwhile(rig.step())
             assert rig.state is SafetyState.ARMED, d.safety.as_dict()
         cmds = rig.step()  # cycle k + n
         assert d.cycles - 1 == k + n
@@ -831,6 +850,30 @@ def test_a_latched_arm_link_fault_reconnects_even_when_reads_look_fine(
     rig.arm.script_refused = False
     rig.enable()
     assert rig.daemon.safety.armed
+
+
+def test_released_the_armed_robot_comes_to_rest_and_stays_armed(
+        make_rig: Callable[..., Rig]) -> None:
+    """The enabling switch released under a push: no fault; the speedJ commands fall to
+    zero on the acceleration limits (the arm's and the base's commands keep flowing, so
+    the controller's watchdog is fed); held again, the robot follows the push again."""
+    rig = make_rig(ENABLING)
+    rig.arm_and_push()
+    assert rig.daemon.status()["enabling"] == "held"
+    rig.arm.inputs = 0
+    speeds = []
+    for _ in range(400):
+        cmds = rig.step()
+        assert names(cmds)[:1] == ["arm.speed_j"], cmds
+        speeds.append(float(np.abs(cmds[0].args[0]).max()))
+    assert rig.daemon.safety.armed and rig.daemon.safety.faults == 0
+    assert rig.daemon.status()["enabling"] == "released"
+    assert speeds[0] > 0.0 and speeds[-1] == 0.0
+    assert all(b <= a for a, b in itertools.pairwise(speeds))  # it only slows down
+    rig.arm.inputs = HELD
+    for _ in range(5):
+        assert_moves(rig.step())
+    assert rig.daemon.status()["enabling"] == "held"
 
 
 def test_the_loop_cycles_on_while_the_base_enables(make_rig: Callable[..., Rig]) -> None:

@@ -22,7 +22,7 @@ import pytest
 
 from mmctl.cli import main
 from mmctl.runtime.ipc import ControlClient, request
-from simconfig import write_sim_config
+from simconfig import LOAD_PROOF, write_sim_config
 from waiting import wait_while_alive
 
 pytestmark = pytest.mark.timeout(600)
@@ -37,8 +37,10 @@ def _host(n: int) -> str:
 class Sim:
     def __init__(self, tmp: Path, host: str, extra: dict[str, Any] | None = None) -> None:
         self.tmp = tmp
+        # load-proof timeouts: the daemons run here test no fault that a loaded machine
+        # could cause (the enabling switch's fault is its contacts, not a timeout)
         self.config = write_sim_config(host, tmp, {
-            "name": "sim-test", "sim": {"human": False, "auto_enable": True},
+            **LOAD_PROOF, "name": "sim-test", "sim": {"human": False, "auto_enable": True},
             "daemon": {"socket_path": str(tmp / "mmctl.sock")}, **(extra or {})})
         self.socket = tmp / "sim.sock"
         self.out = tmp / "sim.log"
@@ -123,7 +125,8 @@ def test_malformed_requests_get_errors_and_the_sim_carries_on(sim: Sim) -> None:
     with ControlClient(sim.socket, timeout=60.0) as c:
         assert c.raw(b"{oops")["error"].startswith("malformed request")
         assert c.raw(b'{"cmd": "explode"}')["error"] == (
-            "unknown command 'explode'; known: status, push, person, press, fault, log, stop")
+            "unknown command 'explode'; known: status, push, person, press, enabling, fault, "
+            "log, stop")
         assert c.raw(b'{"cmd": "push", "force": [1, "NaN", 2]}')["error"] == (
             "push: force[1] = 'NaN': must be a number [N]")
         assert c.raw(b'{"cmd": "push", "force": [1, 2, 3], "seconds": -1}')["error"] == (
@@ -185,6 +188,67 @@ def test_run_attaches_to_a_running_sim_and_leaves_it_running(sim: Sim) -> None:
     assert "sim_attached" in events and "sim_spawned" not in events, events
     assert events.index("auto_enabled") > 0
     assert sim.call("status")["pid"] == sim.proc.pid  # still running
+
+
+def test_the_enabling_switch_through_the_fake_urs_inputs(sim: Sim) -> None:
+    """config/sim.yaml's two-contact enabling switch on the fake UR's inputs 8 and 9,
+    read by the daemon through RTDE: released under a push, the armed robot comes to
+    rest and stays armed; held again, it follows the push; one contact broken is the
+    fault ``enabling_device_fault``, refused while present, re-armed by enable after."""
+    out = sim.tmp / "daemon-enabling.log"
+    sock = sim.tmp / "mmctl.sock"
+
+    def daemon_status() -> dict[str, Any]:
+        st: dict[str, Any] = request(sock, "status", timeout=30.0)
+        return st
+
+    def handle() -> np.ndarray:
+        return np.array(sim.call("status")["handle_world"])
+
+    def at_rest() -> bool:
+        st = sim.call("status")
+        return max(abs(v) for v in st["arm_qd"] + st["wheel_velocities"]) < 1e-6
+
+    with out.open("ab") as f:
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "mmctl.cli", "run", "--config", str(sim.config),
+             "--log-json"], stdout=f, stderr=subprocess.STDOUT, cwd=str(ROOT),
+            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        sim.wait_for(lambda: daemon_status()["state"] == "armed", "the daemon to arm")
+        assert daemon_status()["enabling"] == "held"
+        sim.call("push", force=[0.0, 30.0, 0.0])
+        p0 = handle()
+        sim.wait_for(lambda: handle()[1] - p0[1] > 0.02, "the handle to move 2 cm along +y")
+        assert sim.call("enabling", held=False)["enabling"] == "released"
+        sim.wait_for(at_rest, "the arm and the wheels to come to rest")
+        st = daemon_status()
+        assert st["state"] == "armed" and st["enabling"] == "released" and st["faults"] == 0
+        p1 = handle()
+        sim.wait_for(lambda: daemon_status()["cycles"] > st["cycles"] + 250, "half a second")
+        assert np.abs(handle() - p1).max() < 1e-4  # still, while the person pushes on
+        sim.call("enabling", held=True)
+        sim.wait_for(lambda: handle()[1] - p1[1] > 0.02, "the handle to move on along +y")
+        sim.call("push", force=None)
+        # a broken contact: a fault, refused while present, enable once repaired
+        sim.call("fault", name="enabling_contact", on=True)
+        sim.wait_for(lambda: daemon_status()["state"] == "fault", "the fault")
+        st = daemon_status()
+        assert st["fault"] == "enabling_device_fault", st
+        assert st["fault_details"]["inputs"] == [8, 9], st
+        with pytest.raises(Exception, match="enabling_device_fault"):
+            request(sock, "enable", timeout=30.0)
+        sim.call("fault", name="enabling_contact", on=False)
+        sim.wait_for(lambda: daemon_status()["enabling"] == "held", "the contacts to agree")
+        assert request(sock, "enable", timeout=60.0)["state"] == "armed"
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(120) == 0, out.read_text()[-3000:]
+    finally:
+        sim.call("push", force=None)
+        sim.call("enabling", held=True)
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait(30)
 
 
 def test_ctrl_c_ends_the_sim_cleanly(tmp_path: Path) -> None:

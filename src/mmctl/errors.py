@@ -69,4 +69,5 @@ class FaultCause(str, Enum):
     LOOP_OVERRUN = "loop_overrun"
     NON_FINITE = "non_finite_value"
     SINGULAR = "singular_configuration"
+    ENABLING_DEVICE = "enabling_device_fault"
     INTERNAL = "internal_error"

@@ -82,6 +82,8 @@ FAULT_CAUSES: dict[str, frozenset[str]] = {
     "arm_disconnected": frozenset({"arm_disconnected", "arm_timestamp_stale"}),
     "sensor_garbage": frozenset({"sensor_link_lost", "sensor_stale"}),
     "drive_reboot": frozenset({"drive_heartbeat_lost", "drive_fault", "base_link_lost"}),
+    # one contact of a two-contact enabling switch stays open (a config with one: skipped)
+    "enabling_contact": frozenset({"enabling_device_fault"}),
 }
 EVENT_FAULTS = frozenset({"drive_fault", "arm_not_playing", "drive_reboot"})
 DEFAULT_FAULTS = tuple(FAULT_CAUSES)
@@ -119,9 +121,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="seconds between bursts (default 30)")
     p.add_argument("--fault-every", type=float, default=60.0, metavar="S",
                    help="seconds between injected faults (default 60; 0: none)")
-    p.add_argument("--faults", default=",".join(DEFAULT_FAULTS), metavar="LIST",
+    p.add_argument("--faults", metavar="LIST",
                    help="the injected faults' rotation, comma-separated (default: all of "
-                        "`mmctl sim fault --list`)")
+                        "`mmctl sim fault --list` the configuration can have)")
     p.add_argument("--push-every", type=float, default=6.0, metavar="S",
                    help="mean seconds between random pushes (default 6; 0: none)")
     p.add_argument("--seed", type=int, default=0, help="the schedule's random seed")
@@ -982,6 +984,12 @@ def run(args: argparse.Namespace) -> int:
         raise MmctlError("--flood-clients: must be >= 0")
     if args.flood_clients and not args.flood_every > 0:
         raise MmctlError("--flood-every: must be > 0 with floods")
+    if args.faults is None:
+        from mmctl.runtime.client import load
+
+        two_contacts = len(load(args.config).enabling.inputs) == 2
+        args.faults = ",".join(f for f in DEFAULT_FAULTS
+                               if f != "enabling_contact" or two_contacts)
     unknown = [f for f in args.faults.split(",") if f.strip() and f.strip() not in FAULT_CAUSES]
     if unknown:
         raise MmctlError(f"--faults: unknown {', '.join(unknown)}; known: "

@@ -11,6 +11,7 @@ configuration attaches to it (or, when none answers, starts its own).
   mmctl sim push 20 0 0 --seconds 2
   mmctl sim person on|off       the simulated person takes over / lets go (ends a push)
   mmctl sim press               press the handle button (switch mode)
+  mmctl sim enabling hold|release   the person holds / releases the enabling switch
   mmctl sim fault NAME [--off]  inject a fault into the fakes (--list: the names)
   mmctl sim stop                end the simulation
 """
@@ -21,14 +22,15 @@ import argparse
 import json
 from typing import Any
 
-ACTIONS = ("status", "push", "person", "press", "fault", "stop")
+ACTIONS = ("status", "push", "person", "press", "enabling", "fault", "stop")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("action", nargs="?", choices=ACTIONS, metavar="ACTION",
                    help=f"one of {', '.join(ACTIONS)}; none: run the simulated robot")
     p.add_argument("values", nargs="*", metavar="ARG",
-                   help="push: FX FY FZ [N]; person: on|off; fault: NAME")
+                   help="push: FX FY FZ [N]; person: on|off; enabling: hold|release; "
+                   "fault: NAME")
     p.add_argument("--config", metavar="FILE", help="YAML config (default: config/sim.yaml)")
     p.add_argument("--seconds", type=float, metavar="S", help="push: end it after S seconds")
     p.add_argument("--off", action="store_true", help="fault: switch it off again")
@@ -114,6 +116,10 @@ def _request(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
         if v not in (["on"], ["off"]):
             raise MmctlError("person needs on or off")
         return "person", {"on": v[0] == "on"}
+    if a == "enabling":
+        if v not in (["hold"], ["release"]):
+            raise MmctlError("enabling needs hold or release")
+        return "enabling", {"held": v[0] == "hold"}
     if a == "fault":
         if len(v) != 1:
             raise MmctlError("fault needs one NAME (mmctl sim fault --list)")
@@ -137,8 +143,10 @@ def _print(args: argparse.Namespace, st: Any) -> None:
         print(json.dumps(st, indent=2, sort_keys=True))
         return
     push = st.get("push")
+    enabling = st.get("enabling")
     print(f"person: {st['person']}" + (f" (push {push} N)" if push else "")
-          + f"  button: {'pressed' if st.get('button') else 'released'}")
+          + f"  button: {'pressed' if st.get('button') else 'released'}"
+          + (f"  enabling switch: {enabling}" if enabling else ""))
     print(f"faults: {', '.join(st.get('faults') or []) or '-'}")
     if st.get("handle_world"):
         print(f"handle: {st['handle_world']} m (world), hand force {st.get('hand_force')} N")

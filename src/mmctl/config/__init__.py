@@ -20,6 +20,7 @@ from mmctl.config.control import AdmittanceConfig, IdkConfig, LimitsConfig
 from mmctl.config.robot import RobotConfig
 from mmctl.config.runtime import (
     DaemonConfig,
+    EnablingConfig,
     LoopConfig,
     SafetyConfig,
     SimConfig,
@@ -49,6 +50,7 @@ class Config:
     loop: LoopConfig = sub(LoopConfig)
     safety: SafetyConfig = sub(SafetyConfig)
     daemon: DaemonConfig = sub(DaemonConfig)
+    enabling: EnablingConfig = sub(EnablingConfig)
     telemetry: TelemetryConfig = sub(TelemetryConfig)
     sim: SimConfig = sub(SimConfig)
     name: str = param("mmctl", doc="a label for logs and recordings")
@@ -90,6 +92,10 @@ class Config:
         """The timeouts and watchdogs fit the loop's period; a tare fits in the person's
         patience; the simulated robot serves CAN where the CAN sections look for it."""
         self._check_against_the_period(source)
+        if self.daemon.switch_input in self.enabling.inputs:
+            raise ConfigError("enabling.inputs", list(self.enabling.inputs),
+                              f"must not include daemon.switch_input = "
+                              f"{self.daemon.switch_input} (the switch-mode button)", source)
         tare = self.sensor.wrench.tare_samples / self.loop.rate_hz
         if tare > MAX_TARE_SECONDS:
             raise ConfigError(

@@ -122,6 +122,42 @@ class DaemonConfig:
 
 
 @section
+class EnablingConfig:
+    """The enabling (hold-to-run) switch on the handle, read from the UR's digital inputs
+    through RTDE in every cycle.  Motion only while it is held: released, the armed
+    robot decelerates to rest on the joint and base acceleration limits and stays armed
+    but still until it is held again.  Two contacts (a dual-channel three-position
+    switch) must agree: disagreeing longer than ``discrepancy_time`` (a broken wire, a
+    welded contact) is the fault ``enabling_device_fault``; an input the arm cannot
+    report (its link down) is the arm's fault."""
+
+    inputs: tuple[int, ...] = param(
+        (), ge=0, le=17,
+        doc="UR digital inputs (0-7 standard, 8-15 configurable, 16-17 tool) of the "
+        "switch's contacts: one, or two for a dual-channel switch; () = no enabling "
+        "switch (the robot moves whenever armed)",
+        why="the UR's digital inputs are 0..17")
+    active_low: bool = param(
+        False, doc="the contacts read 0 while the switch is held (and 1 released)")
+    discrepancy_time: float = param(
+        0.05, unit="s", ge=0.002, le=1.0,
+        doc="how long two contacts may disagree (one switching before the other) "
+        "before it is a fault",
+        why="contacts of one switch settle within milliseconds; a second is a broken "
+        "channel that has already been trusted too long")
+
+    def validate(self, path: str, source: str | None) -> None:
+        key = f"{path}.inputs" if path else "inputs"
+        if len(self.inputs) > 2:
+            raise ConfigError(key, list(self.inputs),
+                              "must list at most 2 inputs (one per contact of the switch)",
+                              source)
+        if len(set(self.inputs)) != len(self.inputs):
+            raise ConfigError(key, list(self.inputs),
+                              "must be two different inputs (one per contact)", source)
+
+
+@section
 class TelemetryConfig:
     """rerun telemetry (off by default; `mmctl run --viewer/--connect/--record` turn it on)."""
 

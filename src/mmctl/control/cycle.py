@@ -73,14 +73,17 @@ class CycleState(NamedTuple):
 
 
 class Readings(NamedTuple):
-    """One cycle's inputs: the devices' readings, the period ``dt`` [s] and whether the
-    robot is armed (``active``: the controller runs and commands motion)."""
+    """One cycle's inputs: the devices' readings, the period ``dt`` [s], whether the
+    robot is armed (``active``: the controller runs and commands motion) and whether the
+    enabling switch is held (``held``; False: the armed robot comes to rest and stays,
+    see :class:`~mmctl.control.step.StepInputs`)."""
 
     arm: ArmState
     wrench: Wrench
     odom: Odometry
     dt: float
     active: bool
+    held: bool = True
 
 
 class CycleChain:
@@ -130,7 +133,8 @@ class CycleChain:
             if cond > self.max_condition:  # so enabling here is refused
                 return self._idle(state, q, qd, w.f_h, FaultCause.SINGULAR, {"condition": cond})
             return self._idle(state, q, qd, w.f_h, None, {}, taring=w.taring)
-        ctl, out = self.controller.step(state.controller, StepInputs(w.f_h, q, qd, r.dt))
+        ctl, out = self.controller.step(state.controller,
+                                        StepInputs(w.f_h, q, qd, r.dt, not r.held))
         state = state._replace(controller=ctl)
         if out.fault is not None:
             return self._idle(state, q, qd, w.f_h, out.fault, {"condition": out.condition})

@@ -95,12 +95,15 @@ class ControllerState:
 class StepInputs(NamedTuple):
     """f_h: (6,) processed human wrench in the control frame [N, N m]; q: (9,) measured
     configuration (arm [rad], base x, y [m], yaw [rad] in the world); qdot: (9,)
-    measured velocities (arm [rad/s], base twist in the base frame); dt: period [s]."""
+    measured velocities (arm [rad/s], base twist in the base frame); dt: period [s];
+    hold: come to rest and stay there (the enabling switch is released): the desired
+    velocity is zero, the admittance is reset, the limits decelerate the command."""
 
     f_h: Vec
     q: Vec
     qdot: Vec
     dt: float
+    hold: bool = False
 
 
 class StepOutputs(NamedTuple):
@@ -251,16 +254,20 @@ class Controller:
         if cond > self.max_condition:
             return self._fault(state, FaultCause.SINGULAR, cond, weights)
 
-        z = self.gain * (self.q_des - q)
-        problem = Problem(kin, v_d, q, state.qdot, dt, z)
-        qdot_d = None
-        for wgt, solver in zip(weights, self._solvers):
-            if wgt >= 1.0:  # no cross-fade running: the one solver
-                qdot_d = solver.solve(problem)
-                break
-            if wgt > 0.0:
-                x = solver.solve(problem)
-                qdot_d = wgt * x if qdot_d is None else qdot_d + wgt * x
+        qdot_d: Vec | None = None
+        if inp.hold:  # released: no admittance, no null-space motion; the limits brake
+            v_d = np.zeros(6)
+            qdot_d = np.zeros(9)
+        else:
+            z = self.gain * (self.q_des - q)
+            problem = Problem(kin, v_d, q, state.qdot, dt, z)
+            for wgt, solver in zip(weights, self._solvers):
+                if wgt >= 1.0:  # no cross-fade running: the one solver
+                    qdot_d = solver.solve(problem)
+                    break
+                if wgt > 0.0:
+                    x = solver.solve(problem)
+                    qdot_d = wgt * x if qdot_d is None else qdot_d + wgt * x
         assert qdot_d is not None
         lim = self.limits.apply(qdot_d, state.qdot, q, J, dt)
         qdot = lim.qdot

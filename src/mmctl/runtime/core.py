@@ -85,11 +85,12 @@ class ControlCore:
 
     # -- the cycle ----------------------------------------------------------------------
     def step(self, arm: ArmState, wrench: Wrench, odom: Odometry, dt: float,
-             active: bool, now: float | None = None) -> CycleResult:
-        """One cycle from the device readings; ``active``: the robot is armed."""
+             active: bool, now: float | None = None, held: bool = True) -> CycleResult:
+        """One cycle from the device readings; ``active``: the robot is armed; ``held``:
+        the enabling switch is held (or there is none)."""
         t_now = self.clock() if now is None else now
         self.cstate, result = self.chain.cycle(
-            self.cstate, Readings(arm, wrench, odom, dt, active), t_now)
+            self.cstate, Readings(arm, wrench, odom, dt, active, held), t_now)
         return result
 
     def condition(self, q: Vec) -> float:

@@ -43,7 +43,7 @@ import structlog
 from mmctl.config import Config
 from mmctl.errors import FaultCause, MmctlError
 from mmctl.runtime.core import ControlCore, CycleResult
-from mmctl.runtime.devices import Devices
+from mmctl.runtime.devices import Devices, enabling_switch
 from mmctl.runtime.ipc import ControlServer
 from mmctl.runtime.logging import RateLimiter
 from mmctl.runtime.loop import CycleLoop, Wait
@@ -104,6 +104,8 @@ class Daemon(OperatorCommands, CycleDriver):
                  loop_wait: Wait | None = None):
         self.cfg = cfg
         self.devices = devices
+        if devices.enabling is None:
+            devices.enabling = enabling_switch(cfg, devices.arm)
         self.core = core
         self.safety = SafetyMonitor()
         self.notifier = notifier if notifier is not None else Notifier()
@@ -354,7 +356,8 @@ class Daemon(OperatorCommands, CycleDriver):
         status right after a command shows its effect).  The loop's state is read, not
         locked; the dict returned is never changed afterwards (a new one each rebuild)."""
         s, core = self.safety, self.core
-        key = (s.state, s.latched, len(s.active), core.mode, core.switch, core.taring)
+        key = (s.state, s.latched, len(s.active), core.mode, core.switch, core.taring,
+               self.enabling_state())
         with self._snapshot_lock:
             snap = self._snapshot
             now = time.monotonic()
@@ -370,6 +373,7 @@ class Daemon(OperatorCommands, CycleDriver):
             "mode": self.core.mode,
             "switch": self.core.switch,
             "taring": self.core.taring,
+            "enabling": self.enabling_state(),
             "cycles": self.cycles,
             "uptime_s": round(time.monotonic() - self._started, 3),
             "loop": {"rate_hz": self.cfg.loop.rate_hz, "running": self.loop.running,
@@ -394,6 +398,14 @@ class Daemon(OperatorCommands, CycleDriver):
         return out
 
 
+    def enabling_state(self) -> str | None:
+        """The enabling switch as the last cycle read it: "held", "released",
+        "disagree" (its contacts differ), or None (no enabling switch configured)."""
+        switch = self.devices.enabling
+        if switch is None:
+            return None
+        return {True: "held", False: "released", None: "disagree"}[switch.last]
+
     def live(self) -> dict[str, Any]:
         """The live terminal view's snapshot (:mod:`mmctl.runtime.liveview`; any thread,
         a few times a second: the last second of loop timing, the newest cycle)."""
@@ -401,6 +413,7 @@ class Daemon(OperatorCommands, CycleDriver):
         out: dict[str, Any] = {
             "state": self.safety.state.value, "mode": self.core.mode,
             "fault": self.safety.as_dict().get("fault"), "taring": self.core.taring,
+            "enabling": self.enabling_state(),
             "cycles": self.cycles, "uptime_s": time.monotonic() - self._started,
             "loop": {"rate_hz": self.cfg.loop.rate_hz, "total_misses": self.loop.total_misses,
                      **stats.as_dict()},

@@ -114,10 +114,12 @@ class CycleDriver(_Parts):
             conditions[FaultCause.LOOP_OVERRUN] = {
                 "consecutive": tick.consecutive_misses, "total": tick.total_misses}
         self._poll_button()
+        held = self._enabling_held(arm is not None, conditions)
         result: CycleResult | None = None
         if arm is not None and wrench is not None and odom is not None:
             t0 = time.perf_counter_ns()
-            result = self.core.step(arm, wrench, odom, tick.period, active=self.safety.armed)
+            result = self.core.step(arm, wrench, odom, tick.period, active=self.safety.armed,
+                                    held=held)
             self.step_ns[self.cycles % self.step_ns.shape[0]] = time.perf_counter_ns() - t0
             if result.fault is not None:
                 conditions.setdefault(result.fault, dict(result.fault_details))
@@ -147,6 +149,24 @@ class CycleDriver(_Parts):
             self._update_status()
         if not request_first:
             self._request_sensor(row)
+
+    def _enabling_held(self, arm_read: bool, conditions: dict[FaultCause, dict[str, Any]]
+                       ) -> bool:
+        """Whether the enabling switch is held (True without one); its contacts are read
+        from this cycle's arm sample (none: not held; the arm's own condition says why)."""
+        switch = self.devices.enabling
+        if switch is None:
+            return True
+        if not arm_read:
+            return False
+        try:
+            return switch.held(self.core.clock())
+        except SafetyFault as exc:
+            conditions.setdefault(exc.cause, {"device": "enabling", **exc.details})
+        except TransportError as exc:
+            conditions.setdefault(FaultCause.ARM_DISCONNECTED, {"device": "arm",
+                                                                "error": str(exc)})
+        return False
 
     def _request_sensor(self, row: int) -> None:
         """Ask a request/reply sensor for its next sample (``loop.sensor_request``)."""

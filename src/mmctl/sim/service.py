@@ -57,6 +57,7 @@ FIELDS: dict[str, dict[str, str]] = {
                         "(until ended)"},
     "person": {"on": "true or false", "hold": f"0 <= s <= {MAX_HOLD_SECONDS:g}"},
     "press": {},
+    "enabling": {"held": "true or false"},
     "fault": {"name": "one of the known faults (mmctl sim fault --list)",
               "on": "true or false (default true)"},
     "log": {"since": "CLOCK_MONOTONIC seconds >= 0 (default 0)"},
@@ -173,6 +174,7 @@ class SimService:
             "push": self._cmd_push,
             "person": self._cmd_person,
             "press": self._cmd_press,
+            "enabling": self._cmd_enabling,
             "fault": self._cmd_fault,
             "log": self._log,
             "stop": self._cmd_stop,
@@ -186,6 +188,13 @@ class SimService:
     def _cmd_press(self, req: Mapping[str, Any]) -> Any:
         check_fields("press", req)
         self.world.press()
+        return self._then_status()
+
+    def _cmd_enabling(self, req: Mapping[str, Any]) -> Any:
+        check_fields("enabling", req)
+        if "held" not in req:
+            raise BadRequest("enabling", "held", None, "is required: true or false")
+        self.world.set_enabling(json_bool("enabling", req, "held", True))
         return self._then_status()
 
     def _cmd_push(self, req: Mapping[str, Any]) -> Any:

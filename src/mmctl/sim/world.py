@@ -66,6 +66,7 @@ FAULTS = {
     "drive_silent": "drive 1 (FL) stops its heartbeat",
     "drive_reboot": "drive 1 (FL) reboots (power glitch): default objects, boot-up message",
     "sensor_garbage": "the CAN sensor answers with malformed (3-byte) frames",
+    "enabling_contact": "the enabling switch's second contact stays open (a broken wire)",
 }
 #: Faults that are events, not states: "off" means nothing.
 _EVENTS = {"arm_not_playing", "drive_fault", "drive_reboot"}
@@ -90,6 +91,9 @@ class SimWorld:
         self.button = False
         self._button_input = cfg.daemon.switch_input
         self._button_sent = False
+        #: the enabling switch on the handle (``enabling.inputs``): the person's hand
+        #: holds it unless released (``mmctl sim enabling --release``)
+        self.enabling_held = True
         self.can_server: SocketcandServer | None = None
         q0 = cfg.robot.q_init[:6] if cfg.robot.q_init is not None else cfg.robot.q_des
         self.q_init = np.asarray(q0, dtype=float)
@@ -156,6 +160,7 @@ class SimWorld:
         self._odometry = odometry_matrix(cfg.base.mecanum)
         self._handle_sensor = HandleSensor(cfg)
         self._ur = FakeURController(cfg.arm.host, q_init=self.q_init).start()
+        self._apply_enabling()
         self._drives = FakeDrives(cfg).start()
         self._update()  # the first wrench before the sensor answers anything
         if cfg.sensor.transport == "can":
@@ -318,7 +323,32 @@ class SimWorld:
             except MmctlError as exc:  # the controller is down (a fault test): no button
                 log.warning("sim_button_failed", error=str(exc))
 
+    def _apply_enabling(self) -> None:
+        """The enabling switch's contacts on the fake UR's inputs: each reads its held
+        level while held (``enabling.active_low``), the other level released; the
+        ``enabling_contact`` fault keeps the second contact at its released level."""
+        e = self.cfg.enabling
+        if not e.inputs:
+            return
+        with self._lock:
+            held, broken = self.enabling_held, "enabling_contact" in self._faults
+        for k, index in enumerate(e.inputs):
+            closed = held and not (broken and k == len(e.inputs) - 1)
+            try:
+                self.ur.set_digital_input(index, closed != e.active_low)
+            except MmctlError as exc:  # the controller is down (a fault test)
+                log.warning("sim_enabling_failed", error=str(exc))
+
     # -- what the simulation's control socket asks (mmctl.sim.service) ------------------
+    def set_enabling(self, held: bool) -> None:
+        """The person holds (True) or releases (False) the enabling switch."""
+        if not self.cfg.enabling.inputs:
+            raise MmctlError("no enabling switch is configured (enabling.inputs is empty)")
+        with self._lock:
+            self.enabling_held = bool(held)
+        self._apply_enabling()
+        log.info("sim_enabling", held=bool(held))
+
     def press(self) -> None:
         """Press the handle button for 100 ms."""
         self._press_until = time.monotonic() + 0.1
@@ -350,6 +380,9 @@ class SimWorld:
         """Switch one of :data:`FAULTS` on or off in the fakes."""
         if fault not in FAULTS:
             raise MmctlError(f"unknown sim fault {fault!r}; known: {', '.join(FAULTS)}")
+        if fault == "enabling_contact" and len(self.cfg.enabling.inputs) < 2:
+            raise MmctlError("the enabling_contact fault needs a two-contact enabling switch "
+                             "(enabling.inputs with 2 inputs)")
         from mmctl.sim.fake_ft_can import STATUS_BUS_ERROR, STATUS_SATURATION
 
         nid = self.cfg.base.canopen.node_ids[0]
@@ -373,6 +406,7 @@ class SimWorld:
                 self.ur.kill()
             else:
                 self.ur.restart()
+                self._apply_enabling()  # a new controller process: its inputs start at 0
         elif fault == "drive_fault":
             if on:
                 self.drives.inject_fault(nid)
@@ -393,6 +427,8 @@ class SimWorld:
                 self._faults.add(fault)
             else:
                 self._faults.discard(fault)
+        if fault == "enabling_contact":
+            self._apply_enabling()
         log.info("sim_fault", fault=fault, on=on)
 
     def status(self) -> dict[str, Any]:
@@ -404,6 +440,8 @@ class SimWorld:
             "handle_world": [round(float(x), 5) for x in self._handle],
             "hand_force": [round(float(x), 3) for x in self._last_force],
             "button": self.button,
+            "enabling": None if not self.cfg.enabling.inputs else (
+                "held" if self.enabling_held else "released"),
             "holding": time.monotonic() < self._hold_until,
             "socketcand": None if self.can_server is None else {
                 "address": "{}:{}".format(*self.can_server.address),
