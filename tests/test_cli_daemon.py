@@ -152,8 +152,8 @@ def test_malformed_and_unknown_requests_get_errors(daemon: Proc) -> None:
     with ControlClient(daemon.socket, timeout=60.0) as c:
         assert c.raw(b"{oops")["error"].startswith("malformed request")
         assert c.raw(b'{"cmd": "explode"}')["error"] == (
-            "unknown command 'explode'; known: status, enable, disable, mode, switch, tare, "
-            "stop, trial")  # the command table itself: no "sim" (the simulation's own)
+            "unknown command 'explode'; known: status, enable, disable, mode, profile, switch, "
+            "tare, stop, trial")  # the command table itself: no "sim" (the simulation's own)
         assert "needs 'mode'" in c.raw(b'{"cmd": "mode"}')["error"]
         assert "unknown mode 'fastest'" in c.raw(b'{"cmd": "mode", "mode": "fastest"}')["error"]
         assert c.call("status")["state"] == "disarmed"  # carries on, same connection
@@ -264,6 +264,27 @@ def test_mode_changes_at_run_time(daemon: Proc, capsys: pytest.CaptureFixture[st
     assert _armed(daemon)
     msgs = daemon.drain_notify()
     assert any(m == "STATUS=state=armed mode=locomotion" for m in msgs), msgs
+
+
+def test_the_reduced_profile_at_run_time(daemon: Proc,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """`mmctl profile reduced` caps the end-effector at 0.25 m/s on top of the whole-body
+    caps; status shows the profile and the caps; `normal` lifts it again."""
+    sock = ["--socket", str(daemon.socket)]
+    assert main(["profile", "reduced", *sock]) == 0
+    out = capsys.readouterr().out
+    assert "profile=reduced" in out and "end-effector <= 0.25 m/s" in out, out
+    st = daemon.status()
+    assert st["profile"] == "reduced" and st["caps"]["ee_speed_m_s"] == 0.25
+    assert st["caps"]["energy_J"] == pytest.approx(280.0 ** 2 / 50e3, abs=1e-4)  # chest
+    assert _armed(daemon)
+    assert main(["status", *sock]) == 0
+    assert "limits: profile reduced" in capsys.readouterr().out
+    assert main(["profile", "normal", *sock]) == 0
+    assert daemon.status()["caps"]["ee_speed_m_s"] > 0.25
+    with ControlClient(daemon.socket, timeout=60.0) as c:
+        err = c.raw(b'{"cmd": "profile", "profile": "ludicrous"}')["error"]
+    assert "unknown profile 'ludicrous'" in err, err
 
 
 def test_sigterm_stops_with_the_stop_commands_sent(daemon: Proc) -> None:

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from mmctl.config import Config, config_from_dict, default_config
+from mmctl.config import Config, config_from_dict
 from mmctl.control.step import (
     Controller,
     ControllerState,
@@ -25,9 +25,14 @@ T = 0.002
 PUSH = np.array([15.0, 5.0, 0.0, 0.0, 0.0, 0.0])
 
 
+#: The defaults without the hand-guiding caps (limits.body_region: none): these tests are
+#: about the chain, not the caps (tests/test_caps.py)
+UNCAPPED = config_from_dict({"limits": {"body_region": "none"}})
+
+
 @pytest.fixture(scope="module")
 def ctl() -> Controller:
-    return Controller(default_config())
+    return Controller(UNCAPPED)
 
 
 def _plant(q: np.ndarray, qdot: np.ndarray, dt: float) -> np.ndarray:
@@ -53,7 +58,7 @@ def _run(ctl: Controller, state: ControllerState, q: np.ndarray, n: int, f=PUSH,
 
 
 def test_step_is_deterministic_and_pure(ctl: Controller) -> None:
-    other = Controller(default_config())
+    other = Controller(UNCAPPED)
     for mode in Mode:
         s1 = ctl.initial_state(mode)
         s2 = other.initial_state(mode)
@@ -103,7 +108,7 @@ def test_singular_configuration_gives_zero_command_and_a_fault() -> None:
     _state, out = strict.step(strict.initial_state(), StepInputs(PUSH, strict.q_des, np.zeros(9), T))
     assert out.fault is FaultCause.SINGULAR and out.condition > 2.0
     assert not out.qdot.any()
-    ok = Controller(default_config())
+    ok = Controller(UNCAPPED)
     _, out = ok.step(ok.initial_state(), StepInputs(PUSH, ok.q_des, np.zeros(9), T))
     assert out.fault is None and 1.0 < out.condition < 100.0
 
@@ -142,7 +147,7 @@ def _without_accel_limits(cfg: Config) -> Config:
 
 def _no_accel_limits() -> Controller:
     """Acceleration limits would hide a jump: switch them off to test the blend itself."""
-    return Controller(_without_accel_limits(default_config()))
+    return Controller(_without_accel_limits(UNCAPPED))
 
 
 def _max_step_change(outs) -> float:

@@ -30,6 +30,7 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("disable", "mmctl.commands.disable", "disarm: stop the arm and the base"),
     ("mode", "mmctl.commands.mode", "change the IDK strategy at run time"),
     ("switch", "mmctl.commands.switch", "switch mode: toggle manipulation / locomotion"),
+    ("profile", "mmctl.commands.profile", "limits profile: normal, or reduced (0.25 m/s)"),
     ("tare", "mmctl.commands.tare", "re-zero the force/torque sensor"),
     ("stop", "mmctl.commands.stop", "shut the daemon down"),
 ]
@@ -40,6 +41,7 @@ GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("idk", "mmctl.bench.idk", "time the IDK strategies vs the paper's explicit inverse"),
         ("loop", "mmctl.bench.loop", "500 Hz loop timing vs a time.sleep loop"),
         ("soak", "mmctl.bench.soak", "soak the daemon: pushes, floods, faults; growth and verdict"),
+        ("caps", "mmctl.bench.caps", "hard pushes on the simulated plant: E_K and speeds vs caps"),
     ]),
     "probe": ("bring-up probes for one device", [
         ("sensor", "mmctl.commands.probe_sensor", "read the force/torque sensor, print the wrench"),

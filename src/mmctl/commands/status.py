@@ -31,6 +31,12 @@ def run(args: argparse.Namespace) -> int:
     if robot:
         print(f"end-effector: {robot['ee_position']} m, v_d {robot['v_d'][:3]} m/s, "
               f"f_h {robot['f_h'][:3]} N, E_K {robot['energy_J']} J")
+    caps = st.get("caps")
+    if caps:
+        limit = (robot or {}).get("limit") or "none"
+        print(f"limits: profile {st.get('profile')}, E_K <= {caps['energy_J']} J, base <= "
+              f"{caps['base_speed_m_s']} m/s, end-effector <= {caps['ee_speed_m_s']} m/s; "
+              f"binding now: {limit}")
     if st.get("fault_details"):
         print(f"fault details: {st['fault_details']}")
     return 0

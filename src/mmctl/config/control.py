@@ -129,6 +129,9 @@ class IdkConfig:
 
 
 _DEG = 3.141592653589793 / 180.0
+#: ISO/TS 15066 body regions where transient contact is permitted (mmctl.control.iso15066)
+BodyRegionName = Literal["none", "neck", "back", "chest", "abdomen", "pelvis", "upper_arm",
+                         "lower_arm", "hand", "thigh", "lower_leg"]
 _TWO_PI = 6.2832  # [rad] 2 pi, rounded up: the UR10e's +-360 deg joint range
 
 #: the UR10e's joint speed limits [rad/s] (120 deg/s base and shoulder, 180 deg/s the
@@ -193,6 +196,34 @@ class LimitsConfig:
     ee_angular_velocity: float = param(
         1.5, unit="rad/s", ge=0.01, le=6.0,
         why="the wrist's 180 deg/s plus the base's 3 rad/s is 6.1 rad/s")
+    body_region: BodyRegionName = param(
+        "chest",
+        doc="ISO/TS 15066 body region whose transient-contact values set the whole-body "
+        "caps below when they are not given (mmctl.control.iso15066, docs/hand-guiding.md: "
+        "chest: 1.57 J, base 0.32 m/s, end-effector 0.53 m/s); none: no such caps")
+    energy: float | None = param(
+        None, unit="J", gt=0.0, le=100.0,
+        doc="cap on the whole-body kinetic energy E_K of the command (the paper's "
+        "block-diagonal M); null: F_T^2 / (2 k) of body_region",
+        why="ISO/TS 15066's largest transient energy is 2.6 J (pelvis); 100 J is a "
+        "115 kg base at 1.3 m/s")
+    base_speed: float | None = param(
+        None, unit="m/s", gt=0.0, le=1.5,
+        doc="cap on the base's linear speed (besides base_linear_velocity); null: "
+        "F_T / sqrt(mu k) of body_region with the whole robot's mass",
+        why="the RB-KAIROS+ vendor configuration's 1.5 m/s")
+    ee_speed: float | None = param(
+        None, unit="m/s", gt=0.0, le=3.0,
+        doc="cap on the end-effector's linear speed (besides ee_linear_velocity); null: "
+        "F_T / sqrt(mu k) of body_region with the arm's effective mass M/2 + m_L",
+        why="ur_rtde's ceiling on a tool speed is 3 m/s")
+    profile: Literal["normal", "reduced"] = param(
+        "normal", doc="the limits' profile at start-up (mmctl profile switches at run time): "
+        "reduced caps the end-effector at reduced_ee_speed, for first runs")
+    reduced_ee_speed: float = param(
+        0.25, unit="m/s", gt=0.0, le=0.25,
+        doc="the end-effector speed cap of the reduced profile",
+        why="ISO 10218-1's reduced speed for hand guiding is 0.25 m/s at most")
 
     def validate(self, path: str, source: str | None) -> None:
         for i, (lo, hi) in enumerate(zip(self.joint_position_min, self.joint_position_max)):

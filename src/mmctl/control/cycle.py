@@ -17,6 +17,7 @@ velocity.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any, NamedTuple
 
@@ -106,10 +107,11 @@ class CycleChain:
         return CycleState(self.controller.initial_state(), self.wrench.initial_state())
 
     def at_rest(self, state: CycleState) -> CycleState:
-        """The controller at rest in its current mode and switch sub-mode (on enable)."""
+        """The controller at rest in its current mode, switch sub-mode and limits
+        profile (on enable)."""
         ctl = state.controller
         rest = self.controller.set_switch(self.controller.initial_state(ctl.mode), ctl.switch)
-        return state._replace(controller=rest)
+        return state._replace(controller=dataclasses.replace(rest, reduced=ctl.reduced))
 
     def cycle(self, state: CycleState, r: Readings, now: float) -> tuple[CycleState, CycleResult]:
         """One cycle: ``now`` is the time [s] on the clock of the readings' timestamps

@@ -39,6 +39,7 @@ from mmctl.config import Config
 from mmctl.config.control import Mode, SwitchMode
 from mmctl.control.admittance import Admittance
 from mmctl.control.energy import Energy, kinetic_energy
+from mmctl.control.iso15066 import Caps, derive
 from mmctl.control.limits import Limits
 from mmctl.control.strategies import IdkStrategy, Problem, make_strategies
 from mmctl.errors import FaultCause, MmctlError
@@ -80,6 +81,8 @@ class ControllerState:
     switch: SwitchMode
     weights: tuple[float, float, float, float]
     cycle: int = 0
+    reduced: bool = False
+    """The reduced limits profile (``limits.reduced_ee_speed``) is selected."""
 
     @property
     def target(self) -> str:
@@ -118,7 +121,8 @@ class StepOutputs(NamedTuple):
     current pose (so |p - p_des| is the paper's x_f); condition: condition number of
     J J^T; fault: the cause when the cycle was refused, else None; v: (6,) the measured
     end-effector twist J(q) qdot_measured, control frame [m/s, rad/s] (zeros when
-    refused).
+    refused); limit: the limit that bound the command (:data:`~mmctl.control.limits.
+    LIMIT_NAMES`, "" none).
     """
 
     v_d: Vec
@@ -134,6 +138,7 @@ class StepOutputs(NamedTuple):
     condition: float
     fault: FaultCause | None
     v: Vec
+    limit: str = ""
 
 
 def _target(mode: Mode, switch: SwitchMode) -> str:
@@ -155,6 +160,22 @@ def _parse(enum: type[Enum], value: object) -> Enum:
         raise UnknownMode(f"unknown mode {value!r}; valid: {valid}") from None
 
 
+#: The limits' profiles (``limits.profile``, ``mmctl profile``).
+PROFILES: tuple[str, ...] = ("normal", "reduced")
+
+
+def whole_body_caps(cfg: Config, arm_mass: float) -> Caps:
+    """The whole-body caps: ``limits.energy`` / ``base_speed`` / ``ee_speed`` where
+    given, else derived from ``limits.body_region`` (:func:`mmctl.control.iso15066.
+    derive`) with the robot's masses: base, arm (``arm_mass`` [kg]) and handle."""
+    lim = cfg.limits
+    load = cfg.sensor.wrench.handle_mass
+    d = derive(lim.body_region, cfg.robot.base_mass + arm_mass + load, arm_mass, load)
+    return Caps(d.energy if lim.energy is None else lim.energy,
+                d.base_speed if lim.base_speed is None else lim.base_speed,
+                d.ee_speed if lim.ee_speed is None else lim.ee_speed)
+
+
 _syev = lapack.dsyev
 _ZERO_E = Energy(0.0, 0.0, 0.0)
 _Z3 = _frozen(np.zeros(3))
@@ -173,7 +194,13 @@ class Controller:
         self.cfg = cfg
         self.model = model if model is not None else RobotModel(cfg.robot)
         self.admittance = Admittance.from_config(cfg.admittance)
-        self.limits = Limits(cfg.limits, cfg.base.mecanum, cfg.arm.speedj_acceleration)
+        self.caps = whole_body_caps(cfg, self.model.arm_mass)
+        self.limits = Limits(cfg.limits, cfg.base.mecanum, cfg.arm.speedj_acceleration,
+                             self.caps)
+        reduced = self.caps._replace(ee_speed=min(self.caps.ee_speed,
+                                                  cfg.limits.reduced_ee_speed))
+        self.limits_reduced = Limits(cfg.limits, cfg.base.mecanum,
+                                     cfg.arm.speedj_acceleration, reduced)
         self.strategies: dict[str, IdkStrategy] = make_strategies(cfg, self.limits)
         self._solvers = tuple(self.strategies[n] for n in SOLVERS)
         self.gain = np.array(cfg.idk.null_gain)
@@ -188,7 +215,16 @@ class Controller:
         m = _parse(Mode, mode if mode is not None else self.cfg.idk.strategy)
         sw = _parse(SwitchMode, self.cfg.idk.switch.initial)
         assert isinstance(m, Mode) and isinstance(sw, SwitchMode)
-        return ControllerState(_Z6, _Z9, m, sw, _one_hot(_target(m, sw)), 0)
+        return ControllerState(_Z6, _Z9, m, sw, _one_hot(_target(m, sw)), 0,
+                               self.cfg.limits.profile == "reduced")
+
+    def set_profile(self, state: ControllerState, profile: str) -> ControllerState:
+        """Select the limits' profile ("normal" or "reduced"); a lower cap is reached on
+        the acceleration limits, never by a jump."""
+        if profile not in PROFILES:
+            raise UnknownMode(f"unknown profile {profile!r}; valid: "
+                              f"{', '.join(repr(p) for p in PROFILES)}")
+        return dataclasses.replace(state, reduced=profile == "reduced")
 
     def set_mode(self, state: ControllerState, mode: Mode | str) -> ControllerState:
         """Select another strategy; the command cross-fades over ``blend_time``."""
@@ -269,7 +305,8 @@ class Controller:
                     x = solver.solve(problem)
                     qdot_d = wgt * x if qdot_d is None else qdot_d + wgt * x
         assert qdot_d is not None
-        lim = self.limits.apply(qdot_d, state.qdot, q, J, dt)
+        limits = self.limits_reduced if state.reduced else self.limits
+        lim = limits.apply(qdot_d, state.qdot, q, J, dt, kin.M_a, kin.M_b)
         qdot = lim.qdot
         if not math.isfinite(qdot @ qdot + v_d @ v_d):
             return self._fault(state, FaultCause.NON_FINITE, cond, weights)
@@ -280,9 +317,9 @@ class Controller:
         v_d.setflags(write=False)
         qdot.setflags(write=False)
         new = ControllerState(v_d, qdot, state.mode, state.switch, weights,  # type: ignore[arg-type]
-                              state.cycle + 1)
+                              state.cycle + 1, state.reduced)
         out = StepOutputs(v_d, qdot, qdot[:6], qdot[6:], e_meas, e_cmd, lim.scale * lim.final_scale,
-                          lim.accel_scale, kin.p, p_des, cond, None, J @ qd_meas)
+                          lim.accel_scale, kin.p, p_des, cond, None, J @ qd_meas, lim.limit)
         return new, out
 
     # --- helpers for the simulator and tests -----------------------------------

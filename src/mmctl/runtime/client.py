@@ -60,6 +60,8 @@ def summary(st: dict[str, Any]) -> str:
     if mode == "switch" and st.get("switch"):
         mode = f"switch/{st['switch']}"
     line = f"state={st.get('state')} mode={mode}"
+    if st.get("profile") == "reduced":
+        line += " profile=reduced"
     if st.get("enabling"):
         line += f" enabling={st['enabling']}"
     if st.get("fault"):

@@ -60,6 +60,29 @@ class ControlCore:
         return self.state.switch.value
 
     @property
+    def profile(self) -> str:
+        """The limits' profile: "normal" or "reduced"."""
+        return "reduced" if self.state.reduced else "normal"
+
+    @property
+    def caps(self) -> dict[str, float | None]:
+        """The whole-body caps in force (energy [J], base and end-effector speed [m/s]),
+        the profile's end-effector cap included."""
+        c = self.controller.caps
+        ee = min(c.ee_speed, self.cfg.limits.ee_linear_velocity)
+        if self.state.reduced:
+            ee = min(ee, self.cfg.limits.reduced_ee_speed)
+        base = min(c.base_speed, self.cfg.limits.base_linear_velocity)
+        return {"energy_J": None if math.isinf(c.energy) else round(c.energy, 4),
+                "base_speed_m_s": round(base, 4), "ee_speed_m_s": round(ee, 4)}
+
+    def set_profile(self, profile: str) -> None:
+        """The limits' profile: "normal" or "reduced" (a lower cap is reached on the
+        acceleration limits, never by a jump)."""
+        self.cstate = self.cstate._replace(
+            controller=self.controller.set_profile(self.state, profile))
+
+    @property
     def taring(self) -> bool:
         return self.wstate.tare_left > 0
 

@@ -357,7 +357,7 @@ class Daemon(OperatorCommands, CycleDriver):
         locked; the dict returned is never changed afterwards (a new one each rebuild)."""
         s, core = self.safety, self.core
         key = (s.state, s.latched, len(s.active), core.mode, core.switch, core.taring,
-               self.enabling_state())
+               self.enabling_state(), core.profile)
         with self._snapshot_lock:
             snap = self._snapshot
             now = time.monotonic()
@@ -374,6 +374,8 @@ class Daemon(OperatorCommands, CycleDriver):
             "switch": self.core.switch,
             "taring": self.core.taring,
             "enabling": self.enabling_state(),
+            "profile": self.core.profile,
+            "caps": self.core.caps,
             "cycles": self.cycles,
             "uptime_s": round(time.monotonic() - self._started, 3),
             "loop": {"rate_hz": self.cfg.loop.rate_hz, "running": self.loop.running,
@@ -385,7 +387,8 @@ class Daemon(OperatorCommands, CycleDriver):
         if last is not None:
             out["robot"] = {"q": _round(last.q), "ee_position": _round(last.p),
                             "v_d": _round(last.v_d), "f_h": _round(last.f_h),
-                            "energy_J": round(float(last.energy.total), 6)}
+                            "energy_J": round(float(last.energy.total), 6),
+                            "limit": last.out.limit if last.out is not None else ""}
         if self.sim is not None:
             out["sim"] = self.sim.status()
         if self.telemetry is not None:

@@ -93,6 +93,7 @@ class OperatorCommands(_Parts):
                 _budget(req, self.cfg.daemon.command_timeout)),
             "disable": lambda req: self._then_status(self._on_loop(self._disable)),
             "mode": self._cmd_mode,
+            "profile": self._cmd_profile,
             "switch": self._cmd_switch,
             "tare": self._cmd_tare,
             "stop": self._cmd_stop,
@@ -102,6 +103,10 @@ class OperatorCommands(_Parts):
     def _cmd_mode(self, req: Mapping[str, Any]) -> Any:
         mode = _arg(req, "mode", str)
         return self._then_status(self._on_loop(lambda: self._set_mode(mode)))
+
+    def _cmd_profile(self, req: Mapping[str, Any]) -> Any:
+        profile = _arg(req, "profile", str)
+        return self._then_status(self._on_loop(lambda: self._set_profile(profile)))
 
     def _cmd_switch(self, req: Mapping[str, Any]) -> Any:
         which = _arg(req, "to", str)
@@ -305,6 +310,12 @@ class OperatorCommands(_Parts):
         old = self.core.mode
         self.core.set_mode(mode)
         log.info("mode", old=old, new=self.core.mode)
+        self._update_status()
+
+    def _set_profile(self, profile: str) -> None:
+        old = self.core.profile
+        self.core.set_profile(profile)
+        log.info("profile", old=old, new=self.core.profile, caps=self.core.caps)
         self._update_status()
 
     def _set_switch(self, which: str) -> None:
