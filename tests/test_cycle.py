@@ -158,3 +158,25 @@ def test_a_tare_takes_exactly_its_fresh_samples_and_removes_the_bias(script: Scr
     for _ in range(200):  # the low-pass settles on the tared value
         out = script.step(active=False)
     assert np.abs(out.f_h[:3]).max() < 1e-6
+
+
+@pytest.mark.parametrize("scaling", [0.4, 0.0])
+def test_the_arms_speed_scaling_slows_the_base_with_it(script: Script, scaling: float) -> None:
+    """The controller runs speedJ at ``speed_scaling`` of its speeds (speed slider,
+    reduced mode): the base's twist is scaled alike, so the whole body keeps the motion
+    the IDK solved; the arm's command and the controller's state are not (the
+    controller scales the arm itself; nothing winds up)."""
+    for _ in range(100):
+        script.step(PUSH)
+    state, r = script.state, script.readings(PUSH, True)
+    t = script.t + DT
+    _, full = script.chain.cycle(state, r, t)
+    slow_state, slow = script.chain.cycle(
+        state, r._replace(arm=r.arm._replace(speed_scaling=scaling)), t)
+    assert np.abs(full.twist).max() > 0
+    np.testing.assert_allclose(slow.twist, scaling * full.twist, atol=1e-15)
+    np.testing.assert_array_equal(slow.qd_arm, full.qd_arm)
+    np.testing.assert_array_equal(slow_state.controller.qdot, script.chain.cycle(
+        state, r, t)[0].controller.qdot)
+    _, bad = script.chain.cycle(state, r._replace(arm=r.arm._replace(speed_scaling=math.nan)), t)
+    assert bad.fault is FaultCause.NON_FINITE and not bad.twist.any()

@@ -125,8 +125,8 @@ def test_malformed_requests_get_errors_and_the_sim_carries_on(sim: Sim) -> None:
     with ControlClient(sim.socket, timeout=60.0) as c:
         assert c.raw(b"{oops")["error"].startswith("malformed request")
         assert c.raw(b'{"cmd": "explode"}')["error"] == (
-            "unknown command 'explode'; known: status, push, person, press, enabling, fault, "
-            "log, stop")
+            "unknown command 'explode'; known: status, push, person, press, enabling, slider, "
+            "fault, log, stop")
         assert c.raw(b'{"cmd": "push", "force": [1, "NaN", 2]}')["error"] == (
             "push: force[1] = 'NaN': must be a number [N]")
         assert c.raw(b'{"cmd": "push", "force": [1, 2, 3], "seconds": -1}')["error"] == (
@@ -229,6 +229,12 @@ def test_the_enabling_switch_through_the_fake_urs_inputs(sim: Sim) -> None:
         assert np.abs(handle() - p1).max() < 1e-4  # still, while the person pushes on
         sim.call("enabling", held=True)
         sim.wait_for(lambda: handle()[1] - p1[1] > 0.02, "the handle to move on along +y")
+        # the pendant's speed slider: the daemon reads it through RTDE (and scales the
+        # base with it, tests/test_cycle.py)
+        assert sim.call("slider", fraction=0.4)["speed_slider"] == 0.4
+        sim.wait_for(lambda: daemon_status()["robot"]["speed_scaling"] == 0.4,
+                     "the daemon to see the slider")
+        sim.call("slider", fraction=1.0)
         sim.call("push", force=None)
         # a broken contact: a fault, refused while present, enable once repaired
         sim.call("fault", name="enabling_contact", on=True)
@@ -246,6 +252,7 @@ def test_the_enabling_switch_through_the_fake_urs_inputs(sim: Sim) -> None:
     finally:
         sim.call("push", force=None)
         sim.call("enabling", held=True)
+        sim.call("slider", fraction=1.0)
         if daemon.poll() is None:
             daemon.kill()
             daemon.wait(30)

@@ -168,6 +168,32 @@ def test_speedj_loop_moves_joints_by_the_integral_and_speed_stop_rests(
     assert all((c.acceleration, c.time) == (4.0, PERIOD) for c in speedj)
 
 
+def test_the_speed_slider_is_read_through_rtde_and_slows_speedj(
+        fake: FakeURController, arm: UrRtdeArm) -> None:
+    """The pendant's speed slider at 40 %: ur_rtde reads target_speed_fraction (times
+    speed_scaling) into ArmState.speed_scaling, and the fake controller runs a speedJ at
+    40 % of its speeds, as a UR does."""
+    assert fresh_state(arm).speed_scaling == 1.0
+    fake.set_speed_slider(0.4)
+    clock = Cycles()
+    qd = np.array([0.3, -0.2, 0.0, 0.0, 0.1, 0.0])
+    for _ in range(400):  # 0.8 s: well past the ramp (0.12 rad/s at 4 rad/s^2)
+        arm.speed_j(qd, 4.0, PERIOD)
+        clock.wait()
+        s = arm.read_state()
+    assert s.speed_scaling == pytest.approx(0.4)
+    np.testing.assert_allclose(fake.state().qd, 0.4 * qd, atol=1e-12)
+    fake.set_speed_slider(1.0)
+    for _ in range(400):
+        arm.speed_j(qd, 4.0, PERIOD)
+        clock.wait()
+        s = arm.read_state()
+    assert s.speed_scaling == 1.0
+    np.testing.assert_allclose(fake.state().qd, qd, atol=1e-12)
+    with pytest.raises(ValueError, match="fraction 0..1"):
+        fake.set_speed_slider(1.5)
+
+
 def test_speedj_is_clamped_to_the_joint_speed_limits(fake: FakeURController,
                                                      arm: UrRtdeArm) -> None:
     limits = np.array(arm.joint_speed_limits)  # 120 deg/s base/shoulder, 180 deg/s others

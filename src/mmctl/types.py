@@ -53,7 +53,10 @@ class ArmState(NamedTuple):
     """One RTDE sample of the UR10e.
 
     q, qd: (6,) [rad], [rad/s]; controller_time: the controller's timestamp [s];
-    runtime_state: RTDE runtime state (2 = PLAYING); safety_bits: RTDE safety status bits.
+    runtime_state: RTDE runtime state (2 = PLAYING); safety_bits: RTDE safety status bits;
+    speed_scaling: the fraction of a commanded speed the controller executes (its
+    trajectory limiter's ``speed_scaling`` times the speed slider's
+    ``target_speed_fraction``: ur_rtde's getSpeedScalingCombined), 0..1.
     """
 
     q: Vec
@@ -61,3 +64,4 @@ class ArmState(NamedTuple):
     controller_time: float
     runtime_state: int
     safety_bits: int
+    speed_scaling: float = 1.0

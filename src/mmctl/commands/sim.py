@@ -12,6 +12,7 @@ configuration attaches to it (or, when none answers, starts its own).
   mmctl sim person on|off       the simulated person takes over / lets go (ends a push)
   mmctl sim press               press the handle button (switch mode)
   mmctl sim enabling hold|release   the person holds / releases the enabling switch
+  mmctl sim slider 0.5          the pendant's speed slider: the UR runs speedJ at 50 %
   mmctl sim fault NAME [--off]  inject a fault into the fakes (--list: the names)
   mmctl sim stop                end the simulation
 """
@@ -22,7 +23,7 @@ import argparse
 import json
 from typing import Any
 
-ACTIONS = ("status", "push", "person", "press", "enabling", "fault", "stop")
+ACTIONS = ("status", "push", "person", "press", "enabling", "slider", "fault", "stop")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -30,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"one of {', '.join(ACTIONS)}; none: run the simulated robot")
     p.add_argument("values", nargs="*", metavar="ARG",
                    help="push: FX FY FZ [N]; person: on|off; enabling: hold|release; "
-                   "fault: NAME")
+                   "slider: FRACTION; fault: NAME")
     p.add_argument("--config", metavar="FILE", help="YAML config (default: config/sim.yaml)")
     p.add_argument("--seconds", type=float, metavar="S", help="push: end it after S seconds")
     p.add_argument("--off", action="store_true", help="fault: switch it off again")
@@ -120,6 +121,13 @@ def _request(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
         if v not in (["hold"], ["release"]):
             raise MmctlError("enabling needs hold or release")
         return "enabling", {"held": v[0] == "hold"}
+    if a == "slider":
+        try:
+            (fraction,) = [float(x) for x in v]
+        except ValueError:
+            raise MmctlError("slider needs one fraction 0..1 (the pendant's speed slider)") \
+                from None
+        return "slider", {"fraction": fraction}
     if a == "fault":
         if len(v) != 1:
             raise MmctlError("fault needs one NAME (mmctl sim fault --list)")

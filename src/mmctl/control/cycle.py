@@ -43,7 +43,8 @@ class CycleResult(NamedTuple):
     q, qd: (9,) measured configuration / velocities (arm, then base x, y, yaw /
     vx, vy, wz); f_h: (6,) processed human wrench, control frame [N, N m];
     v_d: (6,) admittance twist; qd_cmd: (9,) command; qd_arm: (6,) speedJ [rad/s];
-    twist: (3,) base command (vx, vy [m/s], wz [rad/s]); p, p_des: (3,) tool position
+    twist: (3,) base command (vx, vy [m/s], wz [rad/s]), times the arm's speed
+    scaling; p, p_des: (3,) tool position
     and FK(q_des) in the world [m]; energy: E_K from measured velocities [J];
     fault: SPEC §5 cause found by the pure chain (None = fine); fault_details: for the
     fault event; taring: a tare is running; out: the controller's outputs (None when
@@ -125,6 +126,10 @@ class CycleChain:
         if not math.isfinite(float(q @ q + qd @ qd)):
             return self._idle(state, q, qd, _Z6, FaultCause.NON_FINITE,
                               {"where": "measured q/qd"})
+        scaling = r.arm.speed_scaling
+        if not math.isfinite(scaling):
+            return self._idle(state, q, qd, _Z6, FaultCause.NON_FINITE,
+                              {"where": "the arm's speed scaling"})
         r_sensor = self.model.fk_base(q, "sensor").rotation
         wstate, w = self.wrench.step(state.wrench, r.wrench, r_sensor, now)
         state = state._replace(wrench=wstate)
@@ -140,8 +145,11 @@ class CycleChain:
         state = state._replace(controller=ctl)
         if out.fault is not None:
             return self._idle(state, q, qd, w.f_h, out.fault, {"condition": out.condition})
+        # the controller executes speedJ at `scaling` of its speeds (speed slider, reduced
+        # mode): the base goes as slowly, so the whole body moves as the IDK solved it
+        twist = out.base_twist if scaling >= 1.0 else max(scaling, 0.0) * out.base_twist
         return state, CycleResult(q, qd, w.f_h, out.v_d, out.qdot, out.qdot_arm,
-                                  out.base_twist, out.p, out.p_des, out.energy, None, {},
+                                  twist, out.p, out.p_des, out.energy, None, {},
                                   False, out)
 
     def condition(self, q: Vec) -> float:

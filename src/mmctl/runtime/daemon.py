@@ -150,6 +150,8 @@ class Daemon(OperatorCommands, CycleDriver):
         """An arm reconnect runs off the loop thread (set and cleared around it): the
         loop then leaves the arm alone and counts it as disconnected."""
         self._arm_reconnect = threading.Lock()
+        self.speed_scaling = 1.0
+        """The arm's speed scaling in the last sample (speed slider x reduced mode)."""
         self._base_busy = False
         """The base's enable runs off the loop thread (it waits for SDO answers and for
         a wheel still ramping down): the loop then leaves the base alone."""
@@ -388,6 +390,7 @@ class Daemon(OperatorCommands, CycleDriver):
             out["robot"] = {"q": _round(last.q), "ee_position": _round(last.p),
                             "v_d": _round(last.v_d), "f_h": _round(last.f_h),
                             "energy_J": round(float(last.energy.total), 6),
+                            "speed_scaling": round(float(self.speed_scaling), 4),
                             "limit": last.out.limit if last.out is not None else ""}
         if self.sim is not None:
             out["sim"] = self.sim.status()

@@ -114,6 +114,8 @@ class CycleDriver(_Parts):
             conditions[FaultCause.LOOP_OVERRUN] = {
                 "consecutive": tick.consecutive_misses, "total": tick.total_misses}
         self._poll_button()
+        if arm is not None:
+            self.speed_scaling = arm.speed_scaling
         held = self._enabling_held(arm is not None, conditions)
         result: CycleResult | None = None
         if arm is not None and wrench is not None and odom is not None:

@@ -54,6 +54,7 @@ class DaemonParts:
     _arm_busy: bool
     _arm_reconnect: threading.Lock
     _base_busy: bool
+    speed_scaling: float
     _base_enable: threading.Lock
     _commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]]
     _stop_requested: threading.Event

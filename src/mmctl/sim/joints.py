@@ -47,6 +47,9 @@ class JointPlant:
         self.q_min = q_min
         self.q_max = q_max
         self.limit_hit = False
+        self.scale = 1.0
+        """The controller's speed scaling (the pendant's speed slider, 0..1): a speedJ
+        target is followed at ``scale`` times its speeds."""
 
     def speed(self, qd: list[float], acceleration: float) -> None:
         """Follow joint speeds ``qd`` [rad/s] with leading-axis acceleration [rad/s^2]."""
@@ -77,7 +80,8 @@ class JointPlant:
         if self.motion is Motion.IDLE:
             self.qdd = [0.0] * 6
             return
-        dv = [t - v for t, v in zip(self.target, qd)]
+        k = self.scale if self.motion is Motion.SPEED else 1.0
+        dv = [k * t - v for t, v in zip(self.target, qd)]
         lead = max(abs(x) for x in dv)
         limit = self.acceleration * dt
         if lead > limit:

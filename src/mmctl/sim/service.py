@@ -58,6 +58,7 @@ FIELDS: dict[str, dict[str, str]] = {
     "person": {"on": "true or false", "hold": f"0 <= s <= {MAX_HOLD_SECONDS:g}"},
     "press": {},
     "enabling": {"held": "true or false"},
+    "slider": {"fraction": "the pendant's speed slider, 0 <= f <= 1"},
     "fault": {"name": "one of the known faults (mmctl sim fault --list)",
               "on": "true or false (default true)"},
     "log": {"since": "CLOCK_MONOTONIC seconds >= 0 (default 0)"},
@@ -175,6 +176,7 @@ class SimService:
             "person": self._cmd_person,
             "press": self._cmd_press,
             "enabling": self._cmd_enabling,
+            "slider": self._cmd_slider,
             "fault": self._cmd_fault,
             "log": self._log,
             "stop": self._cmd_stop,
@@ -195,6 +197,14 @@ class SimService:
         if "held" not in req:
             raise BadRequest("enabling", "held", None, "is required: true or false")
         self.world.set_enabling(json_bool("enabling", req, "held", True))
+        return self._then_status()
+
+    def _cmd_slider(self, req: Mapping[str, Any]) -> Any:
+        check_fields("slider", req)
+        if "fraction" not in req:
+            raise BadRequest("slider", "fraction", None, "is required: 0 <= f <= 1")
+        self.world.set_speed_slider(json_number("slider", "fraction", req["fraction"],
+                                                0.0, 1.0, ""))
         return self._then_status()
 
     def _cmd_push(self, req: Mapping[str, Any]) -> Any:

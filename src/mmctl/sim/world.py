@@ -94,6 +94,7 @@ class SimWorld:
         #: the enabling switch on the handle (``enabling.inputs``): the person's hand
         #: holds it unless released (``mmctl sim enabling --release``)
         self.enabling_held = True
+        self.speed_slider = 1.0
         self.can_server: SocketcandServer | None = None
         q0 = cfg.robot.q_init[:6] if cfg.robot.q_init is not None else cfg.robot.q_des
         self.q_init = np.asarray(q0, dtype=float)
@@ -349,6 +350,13 @@ class SimWorld:
         self._apply_enabling()
         log.info("sim_enabling", held=bool(held))
 
+    def set_speed_slider(self, fraction: float) -> None:
+        """The pendant's speed slider (0..1): the fake UR runs speedJ that much slower."""
+        self.ur.set_speed_slider(fraction)
+        with self._lock:
+            self.speed_slider = float(fraction)
+        log.info("sim_speed_slider", fraction=fraction)
+
     def press(self) -> None:
         """Press the handle button for 100 ms."""
         self._press_until = time.monotonic() + 0.1
@@ -440,6 +448,7 @@ class SimWorld:
             "handle_world": [round(float(x), 5) for x in self._handle],
             "hand_force": [round(float(x), 3) for x in self._last_force],
             "button": self.button,
+            "speed_slider": self.speed_slider,
             "enabling": None if not self.cfg.enabling.inputs else (
                 "held" if self.enabling_held else "released"),
             "holding": time.monotonic() < self._hold_until,

@@ -96,6 +96,7 @@ PROTECTIVE_BITS = (1 << 2) | (1 << 4) | (1 << 8) | (1 << 9) | (1 << 10)
 RECEIVE_VARIABLES = [
     "timestamp", "actual_q", "actual_qd", "runtime_state", "safety_status_bits",
     "robot_status_bits", "robot_mode", "safety_mode", "actual_digital_input_bits",
+    "speed_scaling", "target_speed_fraction",
 ]
 """What the receive interface asks the controller to stream (not ur_rtde's ~60 default)."""
 
@@ -249,7 +250,8 @@ class UrRtdeArm:
             raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.config.host, why="not connected")
         t = self._recv.getTimestamp()
         state = ArmState(np.array(self._recv.getActualQ()), np.array(self._recv.getActualQd()), t,
-                         self._recv.getRuntimeState(), self._recv.getSafetyStatusBits())
+                         self._recv.getRuntimeState(), self._recv.getSafetyStatusBits(),
+                         self._recv.getSpeedScalingCombined())
         self.last_state = state
         if t != self._last_time:
             self._last_time = t

@@ -202,9 +202,9 @@ class UrRtdeProcessArm:
                                       cycles=self._missed)
                 return self.last_state
             self._missed = 0
-        _, _, t, q, qd, runtime, bits, self._di, fault = reply
+        _, _, t, q, qd, runtime, bits, scaling, self._di, fault = reply
         if t is not None:
-            self.last_state = ArmState(np.array(q), np.array(qd), t, runtime, bits)
+            self.last_state = ArmState(np.array(q), np.array(qd), t, runtime, bits, scaling)
         if fault is not None:
             raise _rebuild(fault)
         assert self.last_state is not None
@@ -377,6 +377,7 @@ class _Child:
                  None if s is None else s.controller_time,
                  None if s is None else s.q.tolist(), None if s is None else s.qd.tolist(),
                  None if s is None else s.runtime_state, None if s is None else s.safety_bits,
+                 None if s is None else s.speed_scaling,
                  arm.digital_inputs() if fault is None else 0,
                  None if fault is None else _describe(fault))
         fatal = isinstance(fault, SafetyFault) and fault.cause in FATAL \

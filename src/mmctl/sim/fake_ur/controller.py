@@ -204,6 +204,13 @@ class FakeURController:
             raise ValueError(f"digital input index must be 0..63, got {index}")
         return float(self._request("digital_input", index, on))
 
+    def set_speed_slider(self, fraction: float) -> float:
+        """The pendant's speed slider (0..1, RTDE ``target_speed_fraction``): speedJ
+        targets are followed at this fraction of their speeds."""
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"the speed slider is a fraction 0..1, got {fraction!r}")
+        return float(self._request("speed_slider", fraction))
+
     def set_q(self, q: Sequence[float]) -> float:
         """Teleport the joints to ``q`` (6,) [rad], at rest."""
         values = [float(x) for x in q]

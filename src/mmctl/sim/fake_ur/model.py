@@ -261,7 +261,7 @@ class ControllerModel:
             "safety_status": lambda: self.safety_mode,
             "safety_status_bits": lambda: self.safety_status_bits,
             "robot_status_bits": lambda: self.robot_status_bits,
-            "speed_scaling": lambda: 1.0, "target_speed_fraction": lambda: 1.0,
+            "speed_scaling": lambda: 1.0, "target_speed_fraction": lambda: p.scale,
             "joint_mode": lambda: [JOINT_MODE_RUNNING] * 6,
             "joint_temperatures": lambda: [30.0] * 6,
             "actual_main_voltage": lambda: 48.0, "actual_robot_voltage": lambda: 48.0,

@@ -308,6 +308,8 @@ class FakeURServer:
             index, on = args
             m.digital_inputs = (m.digital_inputs | (1 << index)) if on \
                 else (m.digital_inputs & ~(1 << index))
+        elif op == "speed_slider":
+            m.plant.scale = min(max(float(args[0]), 0.0), 1.0)
         elif op == "set_q":
             m.plant.set_q(list(args[0]))
             self._publish()
