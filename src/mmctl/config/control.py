@@ -123,6 +123,12 @@ class IdkConfig:
         1e-2, ge=1e-9, le=1.0, doc="damping added at an exactly singular configuration",
         why="must be > 0 to invert a singular matrix; above 1 it swamps the task",
     )
+    avoid_joint_limits: bool = param(
+        True,
+        doc="min-energy and locomotion hand the motion of an arm joint that nears its "
+        "position limit to the other joints and the base (the joint is held to a braking "
+        "curve 4x gentler than the limits' own), so the end-effector keeps following; "
+        "false: the limits scale the whole command and the end-effector stops with it")
     locomotion: LocomotionConfig = sub(LocomotionConfig)
     switch: SwitchConfig = sub(SwitchConfig)
     constrained: ConstrainedConfig = sub(ConstrainedConfig)

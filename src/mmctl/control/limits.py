@@ -51,6 +51,10 @@ Vec = NDArray[np.float64]
 
 _INF = float("inf")
 
+AVOID_SHARE = 0.25
+"""Share of the braking deceleration the IDK's joint-limit avoidance plans with: it hands
+a joint's motion to the others 4x farther from the rest point than the braking starts."""
+
 BRAKE_SHARE = 0.8
 """Share of the acceleration limits the position braking plans with: the arm follows a
 command one cycle late, the rest of the acceleration catches up with that."""
@@ -124,6 +128,22 @@ class Limits:
             r = q_a[i] - self._qmin[i] - margin
             down.append(0.0 if r <= 0.0 else min(vj, math.sqrt(two_ab * r)))
         return up, down
+
+    def avoidance_bounds(self, q_a: list[float]) -> tuple[Vec, Vec]:
+        """(9,), (9,) bounds for the IDK's joint-limit avoidance: an arm joint's speed
+        toward its limit at most ``sqrt(2 a r / AVOID_SHARE^-1)`` (the braking curve on
+        :data:`AVOID_SHARE` of its deceleration: it starts 4x farther out), 0 at or past
+        the rest point; no bound on the base or away from a limit."""
+        margin = self.margin
+        lb = np.full(9, -_INF)
+        ub = np.full(9, _INF)
+        for i in range(6):
+            two_a = AVOID_SHARE * self._two_ab[i]
+            r = self._qmax[i] - margin - q_a[i]
+            ub[i] = 0.0 if r <= 0.0 else math.sqrt(two_a * r)
+            r = q_a[i] - self._qmin[i] - margin
+            lb[i] = -(0.0 if r <= 0.0 else math.sqrt(two_a * r))
+        return lb, ub
 
     # --- joint boxes -----------------------------------------------------------
     def box_bounds(self, q: Vec, qdot_prev: Vec, dt: float) -> tuple[Vec, Vec]:

@@ -17,6 +17,7 @@ runs :class:`Manipulation` or :class:`Locomotion` and cross-fades between them.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import ClassVar, NamedTuple
 
 import numpy as np
@@ -57,38 +58,102 @@ class IdkStrategy(ABC):
         """Joint velocities (9,): arm [rad/s], base twist in the base frame."""
 
 
+def hand_over(x: Vec, lb: Vec, ub: Vec, J: Vec, v_d: Vec,
+              resolve: Callable[[NDArray[np.bool_], Vec], Vec], rounds: int = 3) -> Vec:
+    """Joint-limit avoidance by hand-over: the coordinates of ``x`` (9,) beyond their
+    bounds are pinned at the bound, and the task ``J x = v_d`` is solved again on the
+    others (``resolve(free, rhs)`` -> x_free, with ``rhs = v_d - J_pinned x_pinned``):
+    the base and the other joints take over the pinned joints' share of the motion.
+    Repeated while the new solution crosses other bounds (``rounds`` at most); what is
+    still out of bounds then is clipped (the limits scale the command after)."""
+    tol = 1e-12
+    pinned = np.zeros(x.shape[0], dtype=bool)
+    for _ in range(rounds):
+        out = (x < lb - tol) | (x > ub + tol)
+        if not out.any():
+            return x
+        pinned |= out
+        free = ~pinned
+        if int(free.sum()) < 6:
+            break
+        x_p = np.clip(x, lb, ub)[pinned]
+        x = x.copy()
+        x[pinned] = x_p
+        x[free] = resolve(free, v_d - J[:, pinned] @ x_p)
+    return np.clip(x, lb, ub)
+
+
 class MinEnergy(IdkStrategy):
-    """``q* = J_M# v_d + (I - J_M# J) z`` (paper Property 1 and eq. 12-13)."""
+    """``q* = J_M# v_d + (I - J_M# J) z`` (paper Property 1 and eq. 12-13); with
+    ``limits`` (``idk.avoid_joint_limits``) a joint nearing its position limit hands its
+    motion over (:func:`hand_over`: min-energy on the other coordinates)."""
 
     name = "min-energy"
 
-    def __init__(self, cfg: Config) -> None:
+    def __init__(self, cfg: Config, limits: Limits | None = None) -> None:
         self.thr = cfg.idk.singular_threshold
         self.damp = cfg.idk.max_damping
         self.full = cfg.robot.full_inertia
+        self.limits = limits if cfg.idk.avoid_joint_limits else None
 
     def solve(self, p: Problem) -> Vec:
         k = p.kin
         if self.full and k.M_full is not None:
-            return min_energy(k.J, k.M_full, p.v_d, p.z,
+            x = min_energy(k.J, k.M_full, p.v_d, p.z,
+                           singular_threshold=self.thr, max_damping=self.damp)
+        else:
+            x = min_energy_block(k.J, k.M_a, k.M_b, p.v_d, p.z, self.thr, self.damp).x
+        if self.limits is None:
+            return x
+        lb, ub = self.limits.avoidance_bounds(p.q[:6].tolist())
+        if bool(np.all(x >= lb)) and bool(np.all(x <= ub)):
+            return x
+        M = self._inertia(k)
+
+        def resolve(free: NDArray[np.bool_], rhs: Vec) -> Vec:
+            return min_energy(k.J[:, free], M[np.ix_(free, free)], rhs, p.z[free],
                               singular_threshold=self.thr, max_damping=self.damp)
-        return min_energy_block(k.J, k.M_a, k.M_b, p.v_d, p.z, self.thr, self.damp).x
+
+        return hand_over(x, lb, ub, k.J, p.v_d, resolve)
+
+    def _inertia(self, k: Kinematics) -> Vec:
+        if self.full and k.M_full is not None:
+            return k.M_full
+        M = np.zeros((9, 9))
+        M[:6, :6] = k.M_a
+        M[6, 6], M[7, 7], M[8, 8] = k.M_b
+        return M
 
 
 class Locomotion(IdkStrategy):
-    """``(J^T W_a J + W_b)^-1 J^T W_a v_d + (I - J# J) z`` (paper eq. 7)."""
+    """``(J^T W_a J + W_b)^-1 J^T W_a v_d + (I - J# J) z`` (paper eq. 7); with ``limits``
+    a joint nearing its position limit hands its motion over (:func:`hand_over`: the
+    same weighted least squares on the other coordinates)."""
 
     name = "locomotion"
 
-    def __init__(self, cfg: Config) -> None:
+    def __init__(self, cfg: Config, limits: Limits | None = None) -> None:
         self.wa = np.array(cfg.idk.locomotion.w_alpha)
         self.wb = np.array(cfg.idk.locomotion.w_beta)
         self.thr = cfg.idk.singular_threshold
         self.damp = cfg.idk.max_damping
+        self.limits = limits if cfg.idk.avoid_joint_limits else None
 
     def solve(self, p: Problem) -> Vec:
-        return weighted_dls(p.kin.J, p.v_d, self.wa, self.wb, p.z,
-                            singular_threshold=self.thr, max_damping=self.damp)
+        J = p.kin.J
+        x = weighted_dls(J, p.v_d, self.wa, self.wb, p.z,
+                         singular_threshold=self.thr, max_damping=self.damp)
+        if self.limits is None:
+            return x
+        lb, ub = self.limits.avoidance_bounds(p.q[:6].tolist())
+        if bool(np.all(x >= lb)) and bool(np.all(x <= ub)):
+            return x
+
+        def resolve(free: NDArray[np.bool_], rhs: Vec) -> Vec:
+            return weighted_dls(J[:, free], rhs, self.wa, self.wb[free], p.z[free],
+                                singular_threshold=self.thr, max_damping=self.damp)
+
+        return hand_over(x, lb, ub, J, p.v_d, resolve)
 
 
 class Manipulation(IdkStrategy):
@@ -183,6 +248,7 @@ def make_strategies(cfg: Config, limits: Limits) -> dict[str, IdkStrategy]:
     """The four solvers by name (``min-energy``, ``locomotion``, ``manipulation``,
     ``constrained-min-energy``)."""
     items: list[IdkStrategy] = [
-        MinEnergy(cfg), Locomotion(cfg), Manipulation(cfg), ConstrainedMinEnergy(cfg, limits)
+        MinEnergy(cfg, limits), Locomotion(cfg, limits), Manipulation(cfg),
+        ConstrainedMinEnergy(cfg, limits)
     ]
     return {s.name: s for s in items}
