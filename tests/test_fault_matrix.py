@@ -876,6 +876,34 @@ def test_released_the_armed_robot_comes_to_rest_and_stays_armed(
     assert rig.daemon.status()["enabling"] == "held"
 
 
+def test_no_motion_on_a_stale_arm_pose(make_rig: Callable[..., Rig]) -> None:
+    """The arm's stream stops (a frozen controller, a starved arm process): from
+    ``arm.hold_cycles`` cycles without a new sample on, the command decelerates to rest,
+    long before the stale fault (here 1000 cycles: a load-proof configuration) — the
+    soak saw a wrist driven blind into its joint limit for those 2 s.  A new sample
+    lets the robot follow the push again."""
+    rig = make_rig({"arm": {"stale_cycles": 1000, "hold_cycles": 10}})
+    rig.arm_and_push()
+    for _ in range(200):
+        assert_moves(rig.step())  # pushed up to speed
+    rig.arm.frozen = True
+    speeds = []
+    for _ in range(400):
+        cmds = rig.step()
+        assert names(cmds)[:1] == ["arm.speed_j"], cmds
+        speeds.append(float(np.abs(cmds[0].args[0]).max()))
+    assert rig.daemon.safety.armed and rig.daemon.safety.faults == 0
+    assert speeds[0] > 0.0 and speeds[-1] == 0.0
+    first_slower = next(i for i, (a, b) in enumerate(itertools.pairwise(speeds)) if b < a)
+    # the first frozen cycle already repeats the sample: the 10th repeat (cycle index 9)
+    # is the first command that slows down
+    assert first_slower + 1 == 9
+    assert all(b <= a for a, b in itertools.pairwise(speeds[first_slower:]))
+    rig.arm.frozen = False
+    for _ in range(5):
+        assert_moves(rig.step())
+
+
 def test_the_loop_cycles_on_while_the_base_enables(make_rig: Callable[..., Rig]) -> None:
     """The base's enable waits for SDO answers and for wheels still ramping down on the
     last stop (up to ``base.canopen.stop_timeout``).  On the loop thread it stalled the

@@ -31,6 +31,12 @@ class ArmConfig:
         doc="cycles without a new controller timestamp before a 'stale' fault",
         why="10 000 cycles is 20 s at 500 Hz, 8x ur_rtde's own 2.5 s detection: anything "
         "longer is no staleness check")
+    hold_cycles: int = param(
+        10, ge=1, le=10_000,
+        doc="cycles without a new controller sample after which the command decelerates "
+        "to rest (the arm's position is no longer known: no motion on a stale pose); "
+        "the fault 'stale' follows at stale_cycles",
+        why="from the next cycle to 20 s at 500 Hz (stale_cycles' own range)")
     watchdog_min_frequency: float = param(
         10.0, unit="Hz", ge=1.0, le=250.0,
         doc="the controller's RTDE watchdog (ur_rtde setWatchdog): the control script "

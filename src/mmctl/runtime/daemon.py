@@ -151,6 +151,9 @@ class Daemon(OperatorCommands, CycleDriver):
         loop then leaves the arm alone and counts it as disconnected."""
         self._arm_reconnect = threading.Lock()
         self.speed_scaling = 1.0
+        self._arm_time = math.nan
+        self._arm_repeats = 0
+        """Cycles in a row whose arm sample carried the same controller time."""
         """The arm's speed scaling in the last sample (speed slider x reduced mode)."""
         self._base_busy = False
         """The base's enable runs off the loop thread (it waits for SDO answers and for

@@ -116,7 +116,14 @@ class CycleDriver(_Parts):
         self._poll_button()
         if arm is not None:
             self.speed_scaling = arm.speed_scaling
-        held = self._enabling_held(arm is not None, conditions)
+            if arm.controller_time != self._arm_time:
+                self._arm_time, self._arm_repeats = arm.controller_time, 0
+            else:
+                self._arm_repeats += 1
+        # no motion on a pose that is no longer known: after arm.hold_cycles without a
+        # new sample the command decelerates to rest (the stale fault comes later)
+        held = (self._enabling_held(arm is not None, conditions)
+                and self._arm_repeats < self.cfg.arm.hold_cycles)
         result: CycleResult | None = None
         if arm is not None and wrench is not None and odom is not None:
             t0 = time.perf_counter_ns()

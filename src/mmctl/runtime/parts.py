@@ -55,6 +55,8 @@ class DaemonParts:
     _arm_reconnect: threading.Lock
     _base_busy: bool
     speed_scaling: float
+    _arm_time: float
+    _arm_repeats: int
     _base_enable: threading.Lock
     _commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]]
     _stop_requested: threading.Event
