@@ -266,18 +266,35 @@ def test_mode_changes_at_run_time(daemon: Proc, capsys: pytest.CaptureFixture[st
     assert any(m == "STATUS=state=armed mode=locomotion" for m in msgs), msgs
 
 
+def test_pose_record_writes_the_arms_pose_into_a_config(
+        daemon: Proc, capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """`mmctl pose record --write`: the daemon's newest arm sample becomes robot.q_des of
+    a copy of config/robot.yaml, which keeps its comments and still loads."""
+    target = tmp_path / "robot.yaml"
+    text = (ROOT / "config" / "robot.yaml").read_text()
+    target.write_text(text)
+    before = daemon.status()["robot"]["q"][:6]
+    assert main(["pose", "record", "--write", str(target), "--socket", str(daemon.socket)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("robot:\n  q_des: [") and f"written to {target}" in out, out
+    q = list(load_config(target).robot.q_des)
+    assert q == pytest.approx(before, abs=0.05)  # the arm moves a little under the push
+    assert target.read_text().count("#") == text.count("#") + 1
+
+
 def test_the_reduced_profile_at_run_time(daemon: Proc,
                                          capsys: pytest.CaptureFixture[str]) -> None:
     """`mmctl profile reduced` caps the end-effector at 0.25 m/s on top of the whole-body
     caps; status shows the profile and the caps; `normal` lifts it again."""
     sock = ["--socket", str(daemon.socket)]
+    state = daemon.status()["state"]
     assert main(["profile", "reduced", *sock]) == 0
     out = capsys.readouterr().out
     assert "profile=reduced" in out and "end-effector <= 0.25 m/s" in out, out
     st = daemon.status()
     assert st["profile"] == "reduced" and st["caps"]["ee_speed_m_s"] == 0.25
     assert st["caps"]["energy_J"] == pytest.approx(280.0 ** 2 / 50e3, abs=1e-4)  # chest
-    assert _armed(daemon)
+    assert st["state"] == state  # a profile change neither arms nor disarms
     assert main(["status", *sock]) == 0
     assert "limits: profile reduced" in capsys.readouterr().out
     assert main(["profile", "normal", *sock]) == 0

@@ -32,6 +32,7 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("switch", "mmctl.commands.switch", "switch mode: toggle manipulation / locomotion"),
     ("profile", "mmctl.commands.profile", "limits profile: normal, or reduced (0.25 m/s)"),
     ("tare", "mmctl.commands.tare", "re-zero the force/torque sensor"),
+    ("pose", "mmctl.commands.pose", "record the arm's pose as the preferred one (robot.q_des)"),
     ("stop", "mmctl.commands.stop", "shut the daemon down"),
 ]
 
