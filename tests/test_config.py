@@ -330,3 +330,39 @@ def test_the_configuration_reference_is_current() -> None:
     from mmctl.config import reference
 
     assert (ROOT / "docs" / "configuration.md").read_text() == reference()
+
+
+def test_config_reference_lists_every_key_with_default_and_range(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """`mmctl config reference`: every key of the schema, with its default and what is
+    allowed; --markdown is docs/configuration.md."""
+    from mmctl.cli import main
+    from mmctl.config import reference, to_dict
+
+    assert main(["config", "reference"]) == 0
+    out = capsys.readouterr().out
+
+    def leaves(d: dict[str, object], path: str = "") -> list[str]:
+        keys: list[str] = []
+        for k, v in d.items():
+            p = f"{path}.{k}" if path else k
+            keys += leaves(v, p) if isinstance(v, dict) else [p]
+        return keys
+
+    every = leaves(to_dict(default_config()))
+    listed = [ln.split(" = ")[0] for ln in out.splitlines() if not ln.startswith(" ")]
+    assert listed == every
+    assert "limits.body_region = 'chest'\n    allowed: 'none' | 'neck'" in out
+    assert "enabling.active_low = False\n    allowed: true | false" in out
+    assert "robot.q_init = null [rad / m]\n    allowed: 9 x" in out
+    assert main(["config", "reference", "--markdown"]) == 0
+    assert capsys.readouterr().out == reference()
+    assert main(["config", "check", str(ROOT / "config" / "robot.yaml")]) == 0
+    assert capsys.readouterr().out == "ok\n"
+
+
+def test_q_des_inside_the_limits_and_a_private_socket() -> None:
+    with pytest.raises(ConfigError, match=r"robot.q_des\[2\] = 3.1: must be within"):
+        config_from_dict({"robot": {"q_des": [0, -1.9, 3.1, -1.57, -1.57, 0]}})
+    with pytest.raises(ConfigError, match="daemon.socket_mode = '0o666': must not be world"):
+        config_from_dict({"daemon": {"socket_mode": 0o666}})

@@ -52,6 +52,8 @@ def test_a_pose_at_a_joint_limit_or_singular_is_refused() -> None:
         check_pose(q, cfg)
     with pytest.raises(MmctlError, match="close to a singular configuration"):
         check_pose([0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0], cfg)
-    tight = config_from_dict({"limits": {"joint_position_max": [1.0] * 6}})
-    with pytest.raises(MmctlError, match="joint 2 is at 1.5000 rad"):
-        check_pose(Q, tight)
+    tight = config_from_dict({"limits": {"joint_position_max": [2.2] * 6}})
+    q = list(Q)
+    q[2] = 2.1  # inside the limit, not by the margin
+    with pytest.raises(MmctlError, match=r"joint 2 is at 2.1000 rad: .* \[-2.9916, 2.0500\]"):
+        check_pose(q, tight)

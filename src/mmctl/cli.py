@@ -19,6 +19,7 @@ from mmctl.errors import MmctlError
 #: (command, module, one-line help)
 COMMANDS: list[tuple[str, str, str]] = [
     ("check-config", "mmctl.commands.check_config", "validate a YAML config file"),
+    ("config", "mmctl.commands.config", "every config key with default and range; check a file"),
     ("trial", "mmctl.commands.trial", "bracket a task execution: trial start|stop|status"),
     ("metrics", "mmctl.commands.metrics", "recompute trial metrics from a .rrd recording"),
     ("study", "mmctl.commands.study", "reproduce the paper's 27-user study in simulation"),
@@ -94,6 +95,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # `mmctl config reference | head`: the reader left, no traceback
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ from mmctl.config.runtime import (
     SimConfig,
     TelemetryConfig,
 )
-from mmctl.config.schema import build, param, ranges, section, sub, to_dict
+from mmctl.config.schema import build, keys, param, section, sub, to_dict
 from mmctl.config.sensor import SensorCanConfig, SensorConfig
 from mmctl.errors import ConfigError
 
@@ -92,6 +92,20 @@ class Config:
         """The timeouts and watchdogs fit the loop's period; a tare fits in the person's
         patience; the simulated robot serves CAN where the CAN sections look for it."""
         self._check_against_the_period(source)
+        lim, m = self.limits, self.limits.position_margin
+        for i, (x, lo, hi) in enumerate(zip(self.robot.q_des, lim.joint_position_min,
+                                            lim.joint_position_max)):
+            if not lo + m <= x <= hi - m:
+                raise ConfigError(
+                    f"robot.q_des[{i}]", x,
+                    f"must be within limits.joint_position_min/max[{i}] by "
+                    f"limits.position_margin: [{lo + m:g}, {hi - m:g}] rad (the null-space "
+                    "term pulls the arm there)", source)
+        if self.daemon.socket_mode & 0o002:
+            raise ConfigError("daemon.socket_mode", oct(self.daemon.socket_mode),
+                              "must not be world-writable (o+w): whoever may write to the "
+                              "control socket may arm the robot; e.g. 0o660 (owner and group)",
+                              source)
         if self.daemon.switch_input in self.enabling.inputs:
             raise ConfigError("enabling.inputs", list(self.enabling.inputs),
                               f"must not include daemon.switch_input = "
@@ -121,10 +135,11 @@ class Config:
                                   "sim.enabled is true", source)
 
 
-_REFERENCE_HEAD = """# Configuration: the range of every number
+_REFERENCE_HEAD = """# Configuration: every key, its default and its range
 
 Generated from the schema (`src/mmctl/config/*.py`, `param(..., why=...)`) by
-`mmctl.config.reference()`; `tests/test_config.py` keeps this file equal to it.  A value
+`mmctl config reference --markdown` (`mmctl.config.reference()`); `tests/test_config.py`
+keeps this file equal to it.  A value
 outside its range is rejected at start (`mmctl check-config FILE`) with one line naming
 the key, the value, the range and its reason.  Upper bounds are the hardware's own
 limits where there are some (SPEC section 2); elsewhere they catch a unit slip (a time
@@ -137,22 +152,24 @@ Checks between keys: `loop.spin_margin` < the loop period 1 / `loop.rate_hz`;
 `base.canopen.heartbeat_timeout` > `base.canopen.heartbeat_period`;
 `base.command_watchdog` >= 2 x `base.canopen.heartbeat_period`; the dead bands below
 their limits; a tare (`sensor.wrench.tare_samples` / `loop.rate_hz`) of at most 20 s;
-wheel signs -1 or 1; joint position minima below their maxima; `base.canopen.stop_timeout`
-at least the wheels' ramp to rest (at connect).
+wheel signs -1 or 1; joint position minima below their maxima; `robot.q_des` inside the
+joint limits by `limits.position_margin`; `daemon.socket_mode` not world-writable;
+`enabling.inputs` at most two different inputs, not `daemon.switch_input`;
+`base.canopen.stop_timeout` at least the wheels' ramp to rest (at connect).
 
 A key given twice in one YAML mapping is an error naming it and both lines.
 
-| key | allowed | unit | why |
-|---|---|---|---|
+| key | default | allowed | unit | meaning (range: why that range) |
+|---|---|---|---|---|
 """
 
 
 def reference() -> str:
-    """docs/configuration.md: every number's key, range, unit and reason."""
+    """docs/configuration.md: every key's default, range, unit and meaning."""
     def cell(text: str) -> str:
         return text.replace("|", "\\|")
-    rows = [f"| `{key}` | {cell(rng)} | {cell(unit)} | {cell(why)} |"
-            for key, rng, unit, why in ranges(Config)]
+    rows = [f"| `{key}` | `{cell(default)}` | {cell(allowed)} | {cell(unit)} | {cell(meaning)} |"
+            for key, default, allowed, unit, meaning in keys(Config)]
     return _REFERENCE_HEAD + "\n".join(rows) + "\n"
 
 

@@ -234,24 +234,42 @@ def to_dict(obj: Any) -> Any:
     return obj
 
 
-def ranges(cls: type, path: str = "") -> list[tuple[str, str, str, str]]:
-    """(key, allowed range, unit, why) of every number in the section ``cls`` and its
-    subsections, in declaration order: the configuration reference (docs/configuration.md)."""
-    rows: list[tuple[str, str, str, str]] = []
+def keys(cls: type, path: str = "") -> list[tuple[str, str, str, str, str]]:
+    """(key, default, allowed, unit, meaning) of every key in the section ``cls`` and its
+    subsections, in declaration order (``mmctl config reference``).  ``allowed``: the
+    range of a number (per entry of a list), the choices of a Literal, "true | false",
+    "text"; ``meaning``: the key's doc and the reason for its range."""
+    rows: list[tuple[str, str, str, str, str]] = []
     hints = typing.get_type_hints(cls)
+    defaults = build(cls, {})
     for f in dataclasses.fields(cls):
         typ = hints[f.name]
         key = f"{path}.{f.name}" if path else f.name
+        optional = False
         if get_origin(typ) in (typing.Union, types.UnionType):
+            optional = True
             typ = next(a for a in get_args(typ) if a is not type(None))
         if dataclasses.is_dataclass(typ):
-            rows.extend(ranges(cast(type, typ), key))
-            continue
-        elem = get_args(typ)[0] if get_origin(typ) is tuple else typ
-        if elem not in (int, float):
+            rows.extend(keys(cast(type, typ), key))
             continue
         meta = f.metadata
-        rows.append((key + ("[i]" if get_origin(typ) is tuple else ""),
-                     _range_text(meta), meta.get("unit", ""), meta.get("why", "")))
+        elem = get_args(typ)[0] if get_origin(typ) is tuple else typ
+        if elem in (int, float):
+            allowed = _range_text(meta)
+        elif get_origin(elem) is Literal:
+            allowed = " | ".join(repr(a) for a in get_args(elem))
+        elif elem is bool:
+            allowed = "true | false"
+        else:
+            allowed = "text"
+        if optional:
+            allowed += " (or null)"
+        if get_origin(typ) is tuple:
+            shape = meta.get("shape")
+            allowed = (f"{shape[0]} x " if shape else "list of ") + allowed
+        value = to_dict(getattr(defaults, f.name))
+        default = "null" if value is None else repr(value)
+        doc, why = meta.get("doc", ""), meta.get("why", "")
+        meaning = f"{doc} (range: {why})" if doc and why else (doc or why)
+        rows.append((key, default, allowed, meta.get("unit", ""), meaning))
     return rows
-
