@@ -92,6 +92,13 @@ class SafetyConfig:
         why="a condition number is > 1; past 1e8 the inverse of J J^T has lost half the "
         "digits of a double before the check trips",
     )
+    brake_condition: float = param(
+        0.5, gt=0.0, le=1.0,
+        doc="singularity braking: a command that would raise the condition number is "
+        "scaled down from a quarter of this level on, to rest at brake_condition x "
+        "max_condition, so hand guiding never pushes the arm into the singular fault; "
+        "moving away is free; 1: the braking ends at the fault's own level",
+        why="a fraction of safety.max_condition")
 
 
 @section

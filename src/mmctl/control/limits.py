@@ -76,7 +76,8 @@ class Limited(NamedTuple):
 #: else "acceleration" when the acceleration blend bound the command, else "".
 LIMIT_NAMES: tuple[str, ...] = (
     "", "joint_speed", "joint_position", "base_speed", "base_yaw_rate", "wheel_speed",
-    "ee_speed", "ee_angular_speed", "energy", "acceleration")
+    "ee_speed", "ee_angular_speed", "energy", "acceleration", "singularity")
+"""(``singularity``: the controller's singularity braking, after the limits.)"""
 
 
 class Limits:

@@ -160,6 +160,9 @@ def _parse(enum: type[Enum], value: object) -> Enum:
         raise UnknownMode(f"unknown mode {value!r}; valid: {valid}") from None
 
 
+#: [s] how far ahead the singularity braking looks along the command.
+LOOK_AHEAD = 0.1
+
 #: The limits' profiles (``limits.profile``, ``mmctl profile``).
 PROFILES: tuple[str, ...] = ("normal", "reduced")
 
@@ -208,6 +211,8 @@ class Controller:
         self.p_des_base = self.model.fk_base(self.q_des).translation.copy()
         self.blend_time = cfg.idk.switch.blend_time
         self.max_condition = cfg.safety.max_condition
+        self.cond_stop = cfg.safety.brake_condition * cfg.safety.max_condition
+        self.cond_watch = 0.25 * self.cond_stop
 
     # --- state -----------------------------------------------------------------
     def initial_state(self, mode: Mode | str | None = None) -> ControllerState:
@@ -308,6 +313,11 @@ class Controller:
         limits = self.limits_reduced if state.reduced else self.limits
         lim = limits.apply(qdot_d, state.qdot, q, J, dt, kin.M_a, kin.M_b)
         qdot = lim.qdot
+        if cond > self.cond_watch:
+            s_c = self._singularity_scale(q, qdot, cond)
+            if s_c < 1.0:
+                qdot = s_c * qdot
+                lim = lim._replace(final_scale=lim.final_scale * s_c, limit="singularity")
         if not math.isfinite(qdot @ qdot + v_d @ v_d):
             return self._fault(state, FaultCause.NON_FINITE, cond, weights)
 
@@ -321,6 +331,22 @@ class Controller:
         out = StepOutputs(v_d, qdot, qdot[:6], qdot[6:], e_meas, e_cmd, lim.scale * lim.final_scale,
                           lim.accel_scale, kin.p, p_des, cond, None, J @ qd_meas, lim.limit)
         return new, out
+
+    def _singularity_scale(self, q: Vec, qdot: Vec, cond: float) -> float:
+        """Singularity braking: the largest s in [0, 1] such that the condition number
+        of J J^T, extrapolated over :data:`LOOK_AHEAD` at ``s qdot`` from its value at q
+        and at ``q + LOOK_AHEAD qdot``, stays below ``cond_stop`` (1 when the command
+        lowers it: moving away is free)."""
+        ahead = q + LOOK_AHEAD * qdot
+        jac = self.model.jacobian(ahead)
+        w = np.linalg.eigvalsh(jac @ jac.T)
+        nxt = float(w[-1] / w[0]) if w[0] > 0.0 else math.inf
+        if not nxt > cond:
+            return 1.0
+        room = self.cond_stop - cond
+        if room <= 0.0 or not math.isfinite(nxt):
+            return 0.0
+        return min(1.0, room / (nxt - cond))
 
     # --- helpers for the simulator and tests -----------------------------------
     def p_des(self, q: Vec) -> Vec:
