@@ -16,7 +16,7 @@ import yaml
 
 from mmctl.config.arm import ArmConfig
 from mmctl.config.base import BaseConfig, CanopenConfig
-from mmctl.config.control import AdmittanceConfig, IdkConfig, LimitsConfig
+from mmctl.config.control import AdmittanceConfig, IdkConfig, LimitsConfig, WallsConfig
 from mmctl.config.robot import RobotConfig
 from mmctl.config.runtime import (
     DaemonConfig,
@@ -44,6 +44,7 @@ class Config:
     admittance: AdmittanceConfig = sub(AdmittanceConfig)
     idk: IdkConfig = sub(IdkConfig)
     limits: LimitsConfig = sub(LimitsConfig)
+    walls: WallsConfig = sub(WallsConfig)
     arm: ArmConfig = sub(ArmConfig)
     sensor: SensorConfig = sub(SensorConfig)
     base: BaseConfig = sub(BaseConfig)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from enum import Enum
 from typing import Literal, get_args
 
@@ -238,3 +239,78 @@ class LimitsConfig:
                     f"{path}.joint_position_min[{i}]", lo,
                     f"must be < joint_position_max[{i}] = {hi}", source,
                 )
+
+
+def _convex_area(points: tuple[tuple[float, ...], ...]) -> float | None:
+    """The signed area of a simple convex polygon (> 0 counter-clockwise), or None
+    when it is not strictly convex (a reflex or straight corner, a crossing)."""
+    n = len(points)
+    turns = []
+    for i in range(n):
+        (ax, ay), (bx, by), (cx, cy) = points[i], points[(i + 1) % n], points[(i + 2) % n]
+        turns.append((bx - ax) * (cy - by) - (by - ay) * (cx - bx))
+    if not (all(t > 0.0 for t in turns) or all(t < 0.0 for t in turns)):
+        return None
+    area = 0.5 * sum(points[i][0] * points[(i + 1) % n][1] - points[(i + 1) % n][0] * points[i][1]
+                     for i in range(n))
+    # a star (pentagram) turns one way at every corner but winds twice: its turns sum
+    # to more than 2 pi; a convex polygon's exterior angles sum to exactly 2 pi
+    total = 0.0
+    for i in range(n):
+        (ax, ay), (bx, by), (cx, cy) = points[i], points[(i + 1) % n], points[(i + 2) % n]
+        a1, a2 = math.atan2(by - ay, bx - ax), math.atan2(cy - by, cx - bx)
+        total += (a2 - a1 + math.pi) % (2.0 * math.pi) - math.pi
+    return area if abs(abs(total) - 2.0 * math.pi) < 1e-6 else None
+
+
+@section
+class WallsConfig:
+    """Virtual walls: an end-effector box (base frame) and a base keep-in area (world
+    frame, from odometry).  Near a wall the speed into it is bounded by a braking curve
+    that falls to zero at the wall; along and away from it motion stays free
+    (docs/hand-guiding.md, :mod:`mmctl.control.walls`)."""
+
+    ee_box: tuple[tuple[float, ...], ...] | None = param(
+        None, unit="m", shape=(2, 3), ge=-2.0, le=2.0,
+        doc="[[x_min, y_min, z_min], [x_max, y_max, z_max]] the handle's (tool point's) "
+        "box in the base frame (e.g. z_min keeps it off the base's deck and the floor); "
+        "null: none",
+        why="the UR10e reaches 1.3 m from its base (values in millimetres are caught)")
+    base_area: tuple[tuple[float, ...], ...] = param(
+        (), unit="m", shape=(None, 2), min_len=3, ge=-1000.0, le=1000.0,
+        doc="[[x, y], ...] the corners of a convex area in the world frame (odometry's: "
+        "the base starts at the origin heading +x) the base's centre stays in; []: none",
+        why="a lab's floor within a kilometre of the start")
+    margin: float = param(
+        0.15, unit="m", gt=0.0, le=2.0,
+        doc="the distance from a wall at which the speed into it may still be the speed "
+        "cap; the approach curve (a braking at 80 % of the acceleration limits) falls "
+        "to 0 at the wall, and starts farther out when this is shorter than the braking "
+        "distance from the cap",
+        why="centimetres brake hard; beyond 2 m the wall is felt across a room")
+
+    def validate(self, path: str, source: str | None) -> None:
+        box = self.ee_box
+        if box is not None and not all(lo < hi for lo, hi in zip(box[0], box[1])):
+            raise ConfigError(f"{path}.ee_box", [list(r) for r in box],
+                              "each minimum (first row) must be below its maximum "
+                              "(second row)", source)
+        area = self.base_area
+        if area:
+            signed = _convex_area(area)
+            if signed is None:
+                raise ConfigError(f"{path}.base_area", [list(r) for r in area],
+                                  "must be the corners of a convex polygon, each once, in "
+                                  "order", source)
+            inside = all(
+                (bx - ax) * (0.0 - ay) - (by - ay) * (0.0 - ax) > 0.0 if signed > 0.0
+                else (bx - ax) * (0.0 - ay) - (by - ay) * (0.0 - ax) < 0.0
+                for (ax, ay), (bx, by) in zip(area, area[1:] + area[:1]))
+            if not inside:
+                raise ConfigError(f"{path}.base_area", [list(r) for r in area],
+                                  "must contain the origin: odometry starts there, where "
+                                  "the daemon starts", source)
+            if abs(signed) < 1.0:
+                raise ConfigError(f"{path}.base_area", [list(r) for r in area],
+                                  f"encloses {abs(signed):.3g} m^2; the base needs at "
+                                  "least 1 m^2", source)

@@ -41,7 +41,7 @@ def param(
     gt: Bound = None,
     le: Bound = None,
     lt: Bound = None,
-    shape: tuple[int, ...] | None = None,
+    shape: tuple[int | None, ...] | None = None,
     min_len: int | None = None,
     why: str = "",
 ) -> Any:
@@ -139,6 +139,18 @@ def _tuple(path: str, value: Any, typ: Any, meta: Mapping[str, Any], source: str
         kind = "integers"
     if shape is not None and len(shape) == 2:
         rows, cols = shape
+        if get_origin(elem) is tuple:  # tuple[tuple[float, ...], ...]: rows of numbers
+            elem = get_args(elem)[0]
+        if rows is None:  # any number of rows (at least min_len), each of cols entries
+            ok = isinstance(value, (list, tuple)) and all(
+                isinstance(r, (list, tuple)) and len(r) == cols for r in value)
+            if not ok:
+                raise ConfigError(path, value, f"expected a list of [{cols} numbers] rows",
+                                  source)
+            if meta.get("min_len") is not None and 0 < len(value) < meta["min_len"]:
+                raise ConfigError(path, value, f"expected none or at least "
+                                  f"{meta['min_len']} rows", source)
+            rows = len(value)
         ok = isinstance(value, (list, tuple)) and len(value) == rows and all(
             isinstance(r, (list, tuple)) and len(r) == cols for r in value
         )
@@ -254,6 +266,8 @@ def keys(cls: type, path: str = "") -> list[tuple[str, str, str, str, str]]:
             continue
         meta = f.metadata
         elem = get_args(typ)[0] if get_origin(typ) is tuple else typ
+        if get_origin(elem) is tuple:  # rows of a matrix
+            elem = get_args(elem)[0]
         if elem in (int, float):
             allowed = _range_text(meta)
         elif get_origin(elem) is Literal:
@@ -266,7 +280,11 @@ def keys(cls: type, path: str = "") -> list[tuple[str, str, str, str, str]]:
             allowed += " (or null)"
         if get_origin(typ) is tuple:
             shape = meta.get("shape")
-            allowed = (f"{shape[0]} x " if shape else "list of ") + allowed
+            if shape and len(shape) == 2:
+                allowed = (f"{shape[0]} x {shape[1]} " if shape[0] is not None
+                           else f"rows of {shape[1]}: ") + allowed
+            else:
+                allowed = (f"{shape[0]} x " if shape else "list of ") + allowed
         value = to_dict(getattr(defaults, f.name))
         default = "null" if value is None else repr(value)
         doc, why = meta.get("doc", ""), meta.get("why", "")

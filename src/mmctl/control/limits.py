@@ -76,8 +76,9 @@ class Limited(NamedTuple):
 #: else "acceleration" when the acceleration blend bound the command, else "".
 LIMIT_NAMES: tuple[str, ...] = (
     "", "joint_speed", "joint_position", "base_speed", "base_yaw_rate", "wheel_speed",
-    "ee_speed", "ee_angular_speed", "energy", "acceleration", "singularity")
-"""(``singularity``: the controller's singularity braking, after the limits.)"""
+    "ee_speed", "ee_angular_speed", "energy", "acceleration", "singularity", "wall")
+"""(``singularity``: the controller's singularity braking, after the limits; ``wall``: a
+virtual wall (:mod:`mmctl.control.walls`), before them, when no limit bound.)"""
 
 
 class Limits:

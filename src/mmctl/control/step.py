@@ -42,7 +42,8 @@ from mmctl.control.energy import Energy, kinetic_energy
 from mmctl.control.iso15066 import Caps, derive
 from mmctl.control.limits import Limits
 from mmctl.control.strategies import IdkStrategy, Problem, make_strategies
-from mmctl.errors import FaultCause, MmctlError
+from mmctl.control.walls import Walls
+from mmctl.errors import ConfigError, FaultCause, MmctlError
 from mmctl.model.planar import point_to_world
 from mmctl.model.robot import RobotModel, planar_pose
 
@@ -213,6 +214,17 @@ class Controller:
         self.max_condition = cfg.safety.max_condition
         self.cond_stop = cfg.safety.brake_condition * cfg.safety.max_condition
         self.cond_watch = 0.25 * self.cond_stop
+        lim = cfg.limits
+        self.walls = Walls.from_config(
+            cfg.walls, min(self.caps.ee_speed, lim.ee_linear_velocity),
+            min(lim.joint_acceleration) * 1.0,  # [rad/s^2 x 1 m] the joints' at 1 m
+            min(self.caps.base_speed, lim.base_linear_velocity), lim.base_linear_acceleration)
+        box = self.walls.box_distances(self.p_des_base) if self.walls is not None else ()
+        if len(box) and min(box) <= 0.0:
+            raise ConfigError("walls.ee_box", [list(r) for r in cfg.walls.ee_box or ()],
+                              "must contain the tool point of robot.q_des (the null-space "
+                              "term pulls the handle there), at "
+                              f"{self.p_des_base.round(3).tolist()} m in the base frame")
 
     # --- state -----------------------------------------------------------------
     def initial_state(self, mode: Mode | str | None = None) -> ControllerState:
@@ -286,6 +298,11 @@ class Controller:
 
         v_d = self.admittance.step(state.v, f_h, dt)
         kin = self.model.update(q)
+        walled = False
+        if self.walls is not None and not inp.hold:  # the admittance's own state too
+            v_d, in_box = self.walls.filter_box(v_d, kin.p_base)
+            v_d, in_area = self.walls.filter_twist_area(v_d, q)
+            walled = in_box or in_area
         J = kin.J
         w, _, info = _syev(J @ J.T, compute_v=0)
         lo, hi = float(w[0]), float(w[-1])
@@ -310,9 +327,17 @@ class Controller:
                     x = solver.solve(problem)
                     qdot_d = wgt * x if qdot_d is None else qdot_d + wgt * x
         assert qdot_d is not None
+        if self.walls is not None:
+            qdot_d, at_edge = self.walls.clamp_base(qdot_d, q)
+            walled = walled or at_edge
         limits = self.limits_reduced if state.reduced else self.limits
         lim = limits.apply(qdot_d, state.qdot, q, J, dt, kin.M_a, kin.M_b)
         qdot = lim.qdot
+        if self.walls is not None:  # again: the acceleration blend scales the whole
+            qdot, at_edge = self.walls.clamp_base(qdot, q)  # change, the arm's too
+            walled = walled or at_edge
+        if walled and not lim.limit:
+            lim = lim._replace(limit="wall")
         if cond > self.cond_watch:
             s_c = self._singularity_scale(q, qdot, cond)
             if s_c < 1.0:
