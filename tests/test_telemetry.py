@@ -218,6 +218,32 @@ def test_flush_sends_scene_events_timing_and_state_changes() -> None:
     assert len(sink.rows(layout.LOOP_TIMING.path)[0]) == 9 and sink.scenes == [9]
 
 
+def test_the_binding_limit_is_plotted_and_named_when_it_changes_and_holds() -> None:
+    """The limits' scale at the plot rate; an event when the binding limit changes and
+    holds for LIMIT_HOLD rows, none for a limit that binds every other cycle."""
+    from mmctl.telemetry.publisher import LIMIT_HOLD
+
+    sink = RecordingSink()
+    pub = Publisher(sink, pace=False)
+    sink.open()
+    samples = list(synthetic_samples(200))
+    for i in range(200):
+        if 40 <= i < 100:  # the energy cap binds for 60 cycles
+            samples[i] = samples[i]._replace(limit="energy", limit_scale=0.5)
+        elif i >= 140:  # the acceleration limit flickers
+            samples[i] = samples[i]._replace(limit="acceleration" if i % 2 else "")
+    for chunk in range(0, 200, 20):  # flushed in batches, as the publisher thread does
+        for s in samples[chunk:chunk + 20]:
+            pub.put(s)
+        pub.flush()
+    texts = [(e.cycle, e.text) for e in sink.events if e.text.startswith("limit=")]
+    assert LIMIT_HOLD <= 40  # (the runs below are long enough)
+    assert texts == [(40, "limit=energy"), (100, "limit=none")]
+    cyc, scale = sink.rows(layout.LIMIT_SCALE.path)
+    by_cycle = dict(zip(cyc.tolist(), scale[:, 0].tolist()))
+    assert by_cycle[0] == 1.0 and by_cycle[50] == 0.5 and by_cycle[120] == 1.0
+
+
 def test_timing_after_a_missed_deadline_lands_on_the_late_cycle() -> None:
     ring = TimingRing(8)
     sink = RecordingSink()
@@ -332,6 +358,8 @@ def test_control_core_fills_a_row_in_the_base_frame() -> None:
     assert np.array_equal(row[tr.BASE_TWIST], r.twist)
     assert row[tr.E_TOTAL] == r.energy.total
     assert np.array_equal(row[tr.P], r.p) and np.array_equal(row[tr.P_DES], r.p_des)
+    assert tr.label(tr.LIMITS, row[tr.LIMIT]) == r.out.limit
+    assert row[tr.LIMIT_SCALE] == r.out.scale
     # the consumer's world -> mobile base frame: rotate the offset from the base by -yaw
     c, s = math.cos(0.5), math.sin(0.5)
     for world, cols in ((r.p, tr.P), (r.p_des, tr.P_DES)):

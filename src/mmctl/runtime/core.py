@@ -23,6 +23,7 @@ from mmctl.types import ArmState, Odometry, Vec, Wrench
 __all__ = ["ControlCore", "CycleResult"]
 
 _Z6 = np.zeros(6)
+_NO_LIMIT = (0.0, 1.0)  # the controller did not run: no limit, scale 1
 
 
 class ControlCore:
@@ -142,7 +143,9 @@ class ControlCore:
             jac = self.model.jacobian(q) if math.isfinite(float(q @ q)) else np.zeros((6, 9))
             v = jac @ r.qd
         e = r.energy
+        out = r.out
+        limit = (tr.limit_code(out.limit), out.scale) if out is not None else _NO_LIMIT
         np.concatenate(((cycle, t, tr.mode_code(mode), tr.safety_code(safety), *prev), q,
-                        r.f_h, r.v_d, v, r.qd_cmd, (e.total, e.arm, e.base), r.p, r.p_des),
-                       out=row)
+                        r.f_h, r.v_d, v, r.qd_cmd, (e.total, e.arm, e.base), r.p, r.p_des,
+                        limit), out=row)
 

@@ -54,9 +54,12 @@ ARM_QD = Series("plots/command/arm_qd", "plot",
 BASE_TWIST = Series("plots/command/base_twist", "plot", ("v_x", "v_y", "w_z"), "m/s | rad/s")
 WHEELS = Series("plots/command/wheels", "plot", ("FL", "FR", "BL", "BR"), "rad/s")
 DROPPED = Series("plots/telemetry/dropped", "plot", ("dropped",), "samples")
+#: the scale the limits applied to the IDK's command (1: free); which limit bound it is
+#: an event (``limit=...``) when it changes
+LIMIT_SCALE = Series("plots/command/limit_scale", "plot", ("limit scale",), "")
 
 FULL_RATE: tuple[Series, ...] = (ENERGY, FORCE_NORM, SPEED, EE_POSITION, EE_POSITION_DES)
-PLOT_RATE: tuple[Series, ...] = (FORCE, ARM_QD, BASE_TWIST, WHEELS)
+PLOT_RATE: tuple[Series, ...] = (FORCE, ARM_QD, BASE_TWIST, WHEELS, LIMIT_SCALE)
 ALL_SERIES: tuple[Series, ...] = FULL_RATE + (LOOP_TIMING,) + PLOT_RATE + (DROPPED,)
 
 # -- 3-D scene (scene rate); world = odometry frame, base = mobile base frame ------------
@@ -121,6 +124,8 @@ def blueprint(history_s: float = 20.0) -> Any:
             plot("Arm joint velocity commands [rad/s]", ARM_QD.path),
             plot("Base twist command [m/s, rad/s]", BASE_TWIST.path),
             plot("Wheel speed commands [rad/s]", WHEELS.path),
+            plot("Limits: scale of the command (1: free; events name the limit)",
+                 LIMIT_SCALE.path),
             plot("End-effector position p vs p_des [m]", EE_POSITION.path,
                  EE_POSITION_DES.path),
         ),

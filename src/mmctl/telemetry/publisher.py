@@ -46,6 +46,10 @@ log = structlog.get_logger("mmctl.telemetry")
 EVENT_QUEUE_SIZE = 1024
 
 
+#: rows a new binding limit must hold for before an event names it (50 ms at 500 Hz)
+LIMIT_HOLD = 25
+
+
 class Sink(Protocol):
     """Where batches go (:class:`~mmctl.telemetry.rerun_sink.RerunSink`, or a test fake)."""
 
@@ -100,6 +104,9 @@ class Publisher:
                       if pace and timing is not None else None)
         self._busy = np.zeros(0)
         self._state: tuple[float, float] | None = None
+        self._limit = 0.0  # the limit code last reported (0: none)
+        #: the current run of one limit code: code, rows, its first row's cycle and time
+        self._limit_run: tuple[float, int, int, float] = (0.0, 0, 0, 0.0)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._progress = threading.Condition()
@@ -225,6 +232,9 @@ class Publisher:
         self.sink.write(columns, scene, pace)
         for event in self._state_changes(rows):
             self.sink.write_event(event)
+        limit = self._limit_change(rows)
+        if limit is not None:
+            self.sink.write_event(limit)
         for event in self.events.drain():
             self.sink.write_event(event)
         self.batches += 1
@@ -261,6 +271,28 @@ class Publisher:
             out.append(Event(int(rows[i, tr.CYCLE]), float(rows[i, tr.T]),
                              f"mode={m} safety={st}", "ERROR" if st == "fault" else "INFO"))
         return out
+
+
+    def _limit_change(self, rows: np.ndarray) -> Event | None:
+        """A text event when the limit that binds the command changed and has held for
+        :data:`LIMIT_HOLD` rows, across batches (the acceleration limit may bind every
+        other cycle: no event per cycle); at most one per batch, at the run's first row."""
+        codes = rows[:, tr.LIMIT]
+        n = len(codes)
+        if n == 0:
+            return None
+        last = float(codes[-1])
+        differs = np.flatnonzero(codes != last)
+        if len(differs) == 0 and last == self._limit_run[0]:
+            self._limit_run = (last, self._limit_run[1] + n, self._limit_run[2], self._limit_run[3])
+        else:
+            first = int(differs[-1]) + 1 if len(differs) else 0
+            self._limit_run = (last, n - first, int(rows[first, tr.CYCLE]), float(rows[first, tr.T]))
+        code, length, cycle, t = self._limit_run
+        if length < LIMIT_HOLD or code == self._limit:
+            return None
+        self._limit = code
+        return Event(cycle, t, f"limit={tr.label(tr.LIMITS, code) or 'none'}")
 
 
 class BusyRing:

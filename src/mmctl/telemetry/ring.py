@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmctl.config.control import STRATEGIES
+from mmctl.control.limits import LIMIT_NAMES
 from mmctl.telemetry.sample import TelemetrySample
 
 F64 = NDArray[np.float64]
@@ -57,7 +58,9 @@ E_TOTAL, E_ARM, E_BASE = 44, 45, 46
 ENERGY = slice(44, 47)
 P = slice(47, 50)  #: tool position in the world [m]
 P_DES = slice(50, 53)  #: FK(q_des) in the world, base at its pose [m]
-WIDTH = 53
+LIMIT = 53  #: the limit that bound the command (code in :data:`LIMITS`)
+LIMIT_SCALE = 54  #: the scale the limits applied to the IDK's command (1: free)
+WIDTH = 55
 
 #: mode labels a row can carry (``TelemetrySample.mode``), by code
 MODES: tuple[str, ...] = tuple(
@@ -66,7 +69,10 @@ MODES: tuple[str, ...] = tuple(
 ) + ("idle",)
 #: safety states a row can carry (``TelemetrySample.safety``), by code
 SAFETY_STATES: tuple[str, ...] = ("disarmed", "armed", "fault")
+#: limits a row can carry (``TelemetrySample.limit``), by code ("": none)
+LIMITS: tuple[str, ...] = LIMIT_NAMES
 _MODE_CODE = {m: float(i) for i, m in enumerate(MODES)}
+_LIMIT_CODE = {n: float(i) for i, n in enumerate(LIMITS)}
 _SAFETY_CODE = {s: float(i) for i, s in enumerate(SAFETY_STATES)}
 UNKNOWN = "?"
 
@@ -93,6 +99,11 @@ def mode_code(label: str) -> float:
 def safety_code(label: str) -> float:
     """The row code of a safety state (-1: not one of :data:`SAFETY_STATES`)."""
     return _SAFETY_CODE.get(label, -1.0)
+
+
+def limit_code(name: str) -> float:
+    """The row code of a limit's name (-1: not one of :data:`LIMITS`)."""
+    return _LIMIT_CODE.get(name, -1.0)
 
 
 def label(table: tuple[str, ...], code: float) -> str:
@@ -242,7 +253,8 @@ def encode(s: TelemetrySample, row: F64, prev: tuple[float, ...] = _NAN4) -> Non
     np.concatenate(((s.cycle, s.t, _MODE_CODE.get(s.mode, -1.0),
                      _SAFETY_CODE.get(s.safety, -1.0), *prev),
                     s.q_a, s.base_pose, s.f_h, s.v_d, s.v, s.qd_cmd,
-                    (s.e_total, s.e_arm, s.e_base), s.p, s.p_des), out=row)
+                    (s.e_total, s.e_arm, s.e_base), s.p, s.p_des,
+                    (_LIMIT_CODE.get(s.limit, -1.0), s.limit_scale)), out=row)
 
 
 def sample_of(row: F64) -> TelemetrySample:
@@ -253,7 +265,8 @@ def sample_of(row: F64) -> TelemetrySample:
         v=row[V].copy(), qd_cmd=row[QD_CMD].copy(),
         e_total=float(row[E_TOTAL]), e_arm=float(row[E_ARM]), e_base=float(row[E_BASE]),
         p=row[P].copy(), p_des=row[P_DES].copy(), mode=label(MODES, float(row[MODE])),
-        safety=label(SAFETY_STATES, float(row[SAFETY])))
+        safety=label(SAFETY_STATES, float(row[SAFETY])),
+        limit=label(LIMITS, float(row[LIMIT])), limit_scale=float(row[LIMIT_SCALE]))
 
 
 def rows_of(samples: list[TelemetrySample]) -> F64:

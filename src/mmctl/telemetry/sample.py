@@ -34,7 +34,9 @@ class TelemetrySample(NamedTuple):
     p_des: (3,) preferred position ``FK(q_des)``, base at its pose, in the same frame [m]
     (the publisher plots both in the mobile base frame);
     mode: the active IDK strategy / switch sub-mode (its name);
-    safety: the safety state (its name).
+    safety: the safety state (its name);
+    limit: the limit that bound the command (:data:`~mmctl.control.limits.LIMIT_NAMES`,
+    "" none); limit_scale: the scale the limits applied to the IDK's command (1: free).
     """
 
     cycle: int
@@ -52,6 +54,8 @@ class TelemetrySample(NamedTuple):
     p_des: Vec
     mode: str
     safety: str
+    limit: str = ""
+    limit_scale: float = 1.0
 
 
 def zero_sample(cycle: int = 0, t: float = 0.0) -> TelemetrySample:
