@@ -153,7 +153,7 @@ def test_malformed_and_unknown_requests_get_errors(daemon: Proc) -> None:
         assert c.raw(b"{oops")["error"].startswith("malformed request")
         assert c.raw(b'{"cmd": "explode"}')["error"] == (
             "unknown command 'explode'; known: status, enable, disable, mode, profile, switch, "
-            "tare, stop, trial")  # the command table itself: no "sim" (the simulation's own)
+            "tare, stop, trial, calibrate, set, get")  # the command table itself: no "sim" (the simulation's own)
         assert "needs 'mode'" in c.raw(b'{"cmd": "mode"}')["error"]
         assert "unknown mode 'fastest'" in c.raw(b'{"cmd": "mode", "mode": "fastest"}')["error"]
         assert c.call("status")["state"] == "disarmed"  # carries on, same connection
@@ -302,6 +302,39 @@ def test_the_reduced_profile_at_run_time(daemon: Proc,
     with ControlClient(daemon.socket, timeout=60.0) as c:
         err = c.raw(b'{"cmd": "profile", "profile": "ludicrous"}')["error"]
     assert "unknown profile 'ludicrous'" in err, err
+
+
+def test_parameters_change_at_run_time(daemon: Proc,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """`mmctl set` changes a parameter of the running daemon (validated as the config
+    is, logged, shown by status), `mmctl get` reads it; what needs a restart is refused."""
+    sock = ["--socket", str(daemon.socket)]
+    state = daemon.status()["state"]
+    assert main(["set", "admittance.damping", "60", *sock]) == 0
+    assert capsys.readouterr().out.strip() == (
+        "admittance.damping: [75.0, 75.0, 75.0, 75.0, 75.0, 75.0] -> "
+        "[60.0, 60.0, 60.0, 60.0, 60.0, 60.0]")
+    assert main(["get", "admittance.damping", *sock]) == 0
+    assert "[60.0, 60.0" in capsys.readouterr().out
+    assert main(["set", "limits.ee_speed", "0.3", *sock]) == 0
+    capsys.readouterr()
+    st = daemon.status()
+    assert st["changed"] == {"admittance.damping": [60.0] * 6, "limits.ee_speed": 0.3}
+    assert st["caps"]["ee_speed_m_s"] == 0.3 and st["state"] == state
+    assert main(["set", "limits.ee_speed", "null", *sock]) == 0  # back to the derived cap
+    capsys.readouterr()
+    assert daemon.status()["caps"]["ee_speed_m_s"] > 0.3
+    for argv, message in (
+            (["set", "admittance.damping", "-5"], "admittance.damping[0] = -5"),
+            (["set", "loop.rate_hz", "250"], "loop.rate_hz = 250: cannot change while"),
+            (["set", "admittance.dampin", "5"], "admittance.dampin: unknown key"),
+            (["set", "admittance.mass", "[1, 2"], "cannot read '[1, 2' as a YAML value"),
+            (["get", "nothing"], "nothing: unknown key")):
+        assert main([*argv, *sock]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+    assert daemon.status()["changed"]["admittance.damping"] == [60.0] * 6  # kept
+    assert "param_set" in daemon.log_text()
 
 
 def test_sigterm_stops_with_the_stop_commands_sent(daemon: Proc) -> None:

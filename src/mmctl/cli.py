@@ -32,6 +32,9 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("mode", "mmctl.commands.mode", "change the IDK strategy at run time"),
     ("switch", "mmctl.commands.switch", "switch mode: toggle manipulation / locomotion"),
     ("profile", "mmctl.commands.profile", "limits profile: normal, or reduced (0.25 m/s)"),
+    ("set", "mmctl.commands.param:set",
+     "change a control parameter at run time (admittance, caps, IDK gains)"),
+    ("get", "mmctl.commands.param:get", "read a key of the running configuration"),
     ("tare", "mmctl.commands.tare", "re-zero the force/torque sensor"),
     ("pose", "mmctl.commands.pose", "record the arm's pose as the preferred one (robot.q_des)"),
     ("stop", "mmctl.commands.stop", "shut the daemon down"),
@@ -50,13 +53,24 @@ GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("base", "mmctl.commands.probe_base", "enable the base drives, report states, drive a twist"),
         ("arm", "mmctl.commands.probe_arm", "connect to the UR10e, print its state, jog a joint"),
     ]),
+    "calibrate": ("calibrations that move the robot", [
+        ("tool", "mmctl.commands.calibrate_tool",
+         "weigh the handle: sensor bias, mass and centre of mass by least squares"),
+    ]),
 }
 
 
 def _add(sub: argparse._SubParsersAction[argparse.ArgumentParser], name: str, module: str, help_: str) -> None:
+    """One command: ``module`` has ``add_arguments`` and ``run``; ``module:which`` has
+    ``add_which_arguments`` and ``run_which`` (two commands in one module)."""
+    module, _, which = module.partition(":")
     mod = importlib.import_module(module)
     p = sub.add_parser(name, help=help_, description=mod.__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    if which:
+        getattr(mod, f"add_{which}_arguments")(p)
+        p.set_defaults(_run=getattr(mod, f"run_{which}"))
+        return
     mod.add_arguments(p)
     p.set_defaults(_run=mod.run)
 

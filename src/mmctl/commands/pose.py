@@ -14,12 +14,10 @@ whole file loads afterwards before it replaces it.
 from __future__ import annotations
 
 import argparse
-import os
-import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
+from mmctl.commands.yaml_edit import set_entries, write_checked
 from mmctl.runtime.client import add_client_arguments, call, load
 
 
@@ -64,29 +62,7 @@ def with_q_des(text: str, q: list[float]) -> str:
     """``text`` (a YAML config) with ``robot.q_des`` set to ``q``: the entry replaced in
     place (a flow list on one line or a block list), added under ``robot:``, or a
     ``robot:`` section appended; everything else unchanged."""
-    lines = text.splitlines(keepends=True)
-    new = f"q_des: {_flow(q)}  # recorded by mmctl pose record\n"
-    robot = next((i for i, ln in enumerate(lines) if re.match(r"robot:\s*(#.*)?$", ln)), None)
-    if robot is None:
-        sep = "" if not text or text.endswith("\n") else "\n"
-        return f"{text}{sep}robot:\n  {new}"
-    end = len(lines)
-    for i in range(robot + 1, len(lines)):
-        if lines[i].strip() and not lines[i].startswith((" ", "\t", "#")):
-            end = i
-            break
-    for i in range(robot + 1, end):
-        m = re.match(r"(\s+)q_des:", lines[i])
-        if m:
-            indent = m.group(1)
-            j = i + 1  # a block list's items follow, deeper or at the same indent with "-"
-            while j < end and re.match(rf"{indent}(\s+|)- ", lines[j]):
-                j += 1
-            return "".join(lines[:i] + [indent + new] + lines[j:])
-    indent = next((re.match(r"(\s+)", lines[i]).group(1)  # type: ignore[union-attr]
-                   for i in range(robot + 1, end)
-                   if lines[i].strip() and not lines[i].lstrip().startswith("#")), "  ")
-    return "".join(lines[:robot + 1] + [indent + new] + lines[robot + 1:])
+    return set_entries(text, ("robot",), {"q_des": _flow(q)}, "recorded by mmctl pose record")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -105,19 +81,11 @@ def run(args: argparse.Namespace) -> int:
     if target is None:
         return 0
     text = target.read_text() if target.exists() else ""
-    out = with_q_des(text, q)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=str(target.parent or "."))
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(out)
-        written = load_config(Path(tmp))  # the whole file must still load
+
+    def check(written: Any) -> None:
         if list(written.robot.q_des) != [round(x, 5) for x in q]:
             raise MmctlError(f"{target}: q_des did not round-trip (a second robot: section?)")
-        if target.exists():
-            os.chmod(tmp, target.stat().st_mode & 0o7777)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+
+    write_checked(target, with_q_des(text, q), check)
     print(f"written to {target}")
     return 0

@@ -37,6 +37,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"limits: profile {st.get('profile')}, E_K <= {caps['energy_J']} J, base <= "
               f"{caps['base_speed_m_s']} m/s, end-effector <= {caps['ee_speed_m_s']} m/s; "
               f"binding now: {limit}")
+    calib = st.get("calibration")
+    if calib:
+        error = f": {calib['error']}" if calib.get("error") else ""
+        print(f"tool calibration: {calib['phase']} at pose {calib['pose']}/{calib['poses']}, "
+              f"{calib['weighed']} weighed, {calib['elapsed_s']} s{error}")
     if st.get("fault_details"):
         print(f"fault details: {st['fault_details']}")
     return 0

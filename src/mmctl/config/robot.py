@@ -40,6 +40,14 @@ class RobotConfig:
         doc="F/T sensor measurement frame origin in the UR flange (tool0) frame",
         why="a sensor on the flange, within 0.5 m of it (25.4 is millimetres)",
     )
+    sensor_rotation: tuple[float, ...] = param(
+        (0.0, 0.0, 0.0), unit="rad", shape=(3,), ge=-_TWO_PI, le=_TWO_PI,
+        doc="the F/T sensor's axes relative to the flange's as roll, pitch, yaw about the "
+        "flange's x, y, z (URDF rpy: R_flange_sensor = Rz(yaw) Ry(pitch) Rx(roll)); the "
+        "sensor reports its wrench in these axes (e.g. [0, 0, 0.5236]: mounted turned "
+        "30 deg about the flange's z); sensor.wrench.handle_com is in them",
+        why="angles in radians (90 or 180 are degrees)",
+    )
     tool_offset: tuple[float, ...] = param(
         (0.0, 0.0, 0.18), unit="m", shape=(3,), ge=-1.0, le=1.0,
         doc="handle (end-effector) point in the flange frame; the controlled point",

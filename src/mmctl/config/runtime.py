@@ -221,6 +221,23 @@ class SimConfig:
         60.0, unit="s", ge=1.0, le=600.0,
         doc="how long `mmctl run` waits for the `mmctl sim` it started",
         why="it starts in seconds (a minute on a loaded machine); 10 min is a hang")
+    handle_mass: float | None = param(
+        None, unit="kg", ge=0.0, le=12.5,
+        doc="the simulated handle's true mass, which the simulated sensor weighs (what "
+        "`mmctl calibrate tool` should find); null: sensor.wrench.handle_mass (the "
+        "daemon's model is exact)",
+        why="the UR10e's payload is 12.5 kg (600 is grams)")
+    handle_com: tuple[float, ...] | None = param(
+        None, unit="m", shape=(3,), ge=-0.5, le=0.5,
+        doc="the simulated handle's true centre of mass in the sensor frame; null: "
+        "sensor.wrench.handle_com",
+        why="a handle within 0.5 m of the sensor (80 is millimetres)")
+    sensor_bias: tuple[float, ...] = param(
+        (1.2, -0.7, 2.5, 0.04, -0.03, 0.02), unit="N | N m", shape=(6,),
+        ge=(-100.0,) * 3 + (-5.0,) * 3, le=(100.0,) * 3 + (5.0,) * 3,
+        doc="the simulated sensor's constant offset fx, fy, fz [N], tx, ty, tz [N m] (what "
+        "a tare or `mmctl calibrate tool` removes)",
+        why="an offset well inside the Axia80 M20's +-500 N and +-20 N m (mN are caught)")
 
     def validate(self, path: str, source: str | None) -> None:
         import ipaddress

@@ -125,6 +125,59 @@ class WrenchConfig:
 
 
 @section
+class ToolCalibrationConfig:
+    """`mmctl calibrate tool`: with hands off, the armed robot turns its wrist through
+    orientations, weighs the handle at each and fits the sensor bias, the handle's mass
+    and centre of mass (docs/hand-guiding.md).  Wrist joints only, the base held still;
+    any force on the handle stops it."""
+
+    poses: int = param(
+        8, ge=4, le=50,
+        doc="orientations weighed (the start pose and two short probe tilts among them); "
+        "`--poses` overrides it",
+        why="10 unknowns need 3 orientations, a least squares fit a few more; 50 take "
+        "about 10 minutes")
+    speed: float = param(
+        0.3, unit="rad/s", gt=0.0, le=1.0,
+        doc="top speed of each wrist joint (lower where the handle would pass the "
+        "end-effector cap; never above limits.joint_velocity)",
+        why="at 0.3 rad/s the handle moves at about 0.1 m/s; 1 rad/s (tests) is the most "
+        "an automatic motion next to a person gets here")
+    acceleration: float = param(
+        0.5, unit="rad/s^2", gt=0.0, le=4.0,
+        doc="the motion's ramps (never above limits.joint_acceleration)",
+        why="4 rad/s^2 is the UR10e's default speedJ acceleration")
+    wrist_range: tuple[float, ...] = param(
+        (0.5, 1.3, 3.1416), unit="rad", shape=(3,), ge=0.0, le=3.1416,
+        doc="how far wrist 1, wrist 2 and wrist 3 may turn from the start pose (wrist 1, "
+        "which moves the whole wrist, only slightly); the handle must be free to sweep "
+        "this range",
+        why="half a turn each way at most (90 is degrees)")
+    probe: float = param(
+        0.2, unit="rad", ge=0.05, le=1.0,
+        doc="the first two poses tilt gravity by at most this much from the start, so "
+        "the push check below has weighed this handle before the wrist turns far",
+        why="from 3 to 57 deg (20 is degrees)")
+    settle_time: float = param(
+        0.5, unit="s", ge=0.0, le=10.0,
+        doc="the arm rests this long at a pose before its wrench is averaged",
+        why="a wrist at rest settles within a few hundred ms; 10 s is a stuck arm")
+    average_time: float = param(
+        0.5, unit="s", ge=0.02, le=10.0, doc="the raw wrench is averaged this long per pose",
+        why="at least ten samples at 500 Hz; 10 s is beyond any sensor noise (500 is ms)")
+    abort_force: float = param(
+        5.0, unit="N", ge=0.5, le=50.0,
+        doc="a force this far from the weight predicted from the poses weighed so far "
+        "(the configured handle_mass and handle_com to begin with) is a hand on the "
+        "handle: the robot stops and is disarmed",
+        why="above the sensor's noise and a cable's pull; a hand pushes 10-15 N")
+    abort_torque: float = param(
+        0.5, unit="N m", ge=0.05, le=5.0,
+        doc="the same for the torque",
+        why="above the sensor's noise; a hand's guiding torque is about 1 N m")
+
+
+@section
 class SensorConfig:
     """Force/torque sensor."""
 
@@ -132,3 +185,4 @@ class SensorConfig:
     can: SensorCanConfig = sub(SensorCanConfig)
     rdt: SensorRdtConfig = sub(SensorRdtConfig)
     wrench: WrenchConfig = sub(WrenchConfig)
+    calibration: ToolCalibrationConfig = sub(ToolCalibrationConfig)

@@ -28,7 +28,7 @@ from mmctl.control.energy import Energy
 from mmctl.control.step import Controller, ControllerState, StepInputs, StepOutputs
 from mmctl.control.wrench import WrenchProcessor, WrenchState
 from mmctl.errors import FaultCause
-from mmctl.model.robot import RobotModel
+from mmctl.model.robot import RobotModel, tool_in_sensor
 from mmctl.types import ArmState, Odometry, Vec, Wrench
 
 _Z3 = np.zeros(3)
@@ -99,8 +99,8 @@ class CycleChain:
         self.dt = 1.0 / cfg.loop.rate_hz
         self.model = model if model is not None else RobotModel(cfg.robot)
         self.controller = Controller(cfg, self.model)
-        control_point = np.subtract(cfg.robot.tool_offset, cfg.robot.sensor_offset)
-        self.wrench = WrenchProcessor(cfg.sensor.wrench, self.dt, control_point)
+        # the handle point in the sensor's own axes (robot.sensor_rotation)
+        self.wrench = WrenchProcessor(cfg.sensor.wrench, self.dt, tool_in_sensor(cfg.robot))
         self.max_condition = cfg.safety.max_condition
 
     def initial_state(self) -> CycleState:

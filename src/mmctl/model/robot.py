@@ -8,8 +8,11 @@ expressed in the *base* frame [m/s, m/s, rad/s] (what the drives and odometry us
 Frames: ``world`` (odometry, z up), ``base`` (the mobile base's ``base_link`` at floor
 height), ``arm_base`` (UR DH frame 0, at ``robot.arm_mount``), ``flange`` (UR tool0,
 DH frame 6), ``sensor`` (F/T measurement frame) and ``tool`` (the handle point, the
-controlled end-effector).  The *control frame* is the base frame's axes placed at the
-tool point: twists ``v = (v_lin [m/s], w [rad/s])`` and the Jacobian use it.
+controlled end-effector).  The sensor frame sits at ``robot.sensor_offset`` in the
+flange frame, its axes turned by ``robot.sensor_rotation`` (:func:`sensor_rotation`);
+the tool frame keeps the flange's axes.  The *control frame* is the base frame's axes
+placed at the tool point: twists ``v = (v_lin [m/s], w [rad/s])`` and the Jacobian
+use it.
 
 The arm is a Pinocchio model built programmatically from UR's DH and dynamics tables
 (:mod:`mmctl.model.ur10e`) whose root is the base frame; the base columns of the
@@ -67,6 +70,22 @@ def planar_pose(x: float, y: float, yaw: float) -> pin.SE3:
     return pin.SE3(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.array([x, y, 0.0]))
 
 
+def sensor_rotation(cfg: RobotConfig) -> Mat:
+    """R_flange_sensor (3, 3): the sensor's axes in the flange frame, from
+    ``robot.sensor_rotation`` (roll, pitch, yaw [rad]: ``Rz(yaw) Ry(pitch) Rx(roll)``);
+    the identity when the sensor's axes are the flange's."""
+    roll, pitch, yaw = (float(a) for a in cfg.sensor_rotation)
+    r: Mat = pin.rpy.rpyToMatrix(roll, pitch, yaw)
+    return r
+
+
+def tool_in_sensor(cfg: RobotConfig) -> Mat:
+    """(3,) the handle point (``robot.tool_offset``) in the sensor frame [m]: where the
+    person's force acts, as the sensor sees it (the lever of its torque)."""
+    lever: Mat = sensor_rotation(cfg).T @ np.subtract(cfg.tool_offset, cfg.sensor_offset)
+    return lever
+
+
 def base_jacobian(p_base: Mat, out: Mat | None = None) -> Mat:
     """(6, 3) J_b: tool twist (control frame) per base twist (vx, vy, wz) (base frame).
 
@@ -115,8 +134,9 @@ class RobotModel:
     def _add_tool_frames(self, model: pin.Model) -> None:
         flange = model.getFrameId("flange")
         fl = model.frames[flange]
-        for name, offset in (("sensor", self.cfg.sensor_offset), ("tool", self.cfg.tool_offset)):
-            placement = fl.placement * pin.SE3(np.eye(3), np.asarray(offset, dtype=float))
+        for name, rot, offset in (("sensor", sensor_rotation(self.cfg), self.cfg.sensor_offset),
+                                  ("tool", np.eye(3), self.cfg.tool_offset)):
+            placement = fl.placement * pin.SE3(rot, np.asarray(offset, dtype=float))
             model.addFrame(pin.Frame(name, fl.parentJoint, placement, pin.FrameType.OP_FRAME))
 
     def _build_whole(self) -> None:

@@ -14,7 +14,8 @@ import numpy as np
 
 from mmctl.config import Config
 from mmctl.control.cycle import CycleChain, CycleResult, CycleState, Readings
-from mmctl.control.step import ControllerState
+from mmctl.control.params import get_value, with_value
+from mmctl.control.step import Controller, ControllerState
 from mmctl.control.wrench import WrenchState
 from mmctl.model.robot import RobotModel
 from mmctl.telemetry import ring as tr
@@ -42,6 +43,8 @@ class ControlCore:
         self.controller = self.chain.controller
         self.wrench = self.chain.wrench
         self.cstate: CycleState = self.chain.initial_state()
+        #: the parameters changed at run time (`mmctl set`): key -> value now
+        self.changed: dict[str, Any] = {}
 
     @property
     def state(self) -> ControllerState:
@@ -82,6 +85,25 @@ class ControlCore:
         acceleration limits, never by a jump)."""
         self.cstate = self.cstate._replace(
             controller=self.controller.set_profile(self.state, profile))
+
+    def prepare(self, key: str, value: Any) -> tuple[Config, Controller]:
+        """A run-time parameter change, the slow half (any thread): the configuration
+        with ``key`` set (validated: ConfigError) and a controller built from it on a
+        model of its own (the loop's model is the loop thread's scratch space)."""
+        cfg = with_value(self.cfg, key, value)
+        return cfg, Controller(cfg, RobotModel(cfg.robot))
+
+    def install(self, cfg: Config, controller: Controller, key: str = "") -> None:
+        """The quick half (loop thread): the new controller takes over the current
+        state (the admittance's velocity, the last command, mode, switch, profile): no
+        velocity jump; a lower cap or another weighting is reached on the acceleration
+        limits as a mode change is.  ``key``: what changed (:attr:`changed` shows it)."""
+        if key:
+            self.changed[key] = get_value(cfg, key)
+        self.cfg = cfg
+        self.chain.cfg = cfg
+        self.chain.controller = controller
+        self.controller = controller
 
     @property
     def taring(self) -> bool:

@@ -10,7 +10,9 @@ One cycle (:meth:`Daemon.cycle`, on the loop thread):
 2. read the arm, the sensor and the base; every SPEC §5 condition found goes into this
    cycle's condition set (a device raising :class:`SafetyFault` names its cause);
 3. when ARMED, run the pure control step (wrench processing, admittance, IDK, limits);
-   its fault (non-finite, singular) joins the set;
+   its fault (non-finite, singular) joins the set (while a tool-load calibration runs,
+   :mod:`mmctl.runtime.calibrate`, the controller idles and the calibration's motion
+   goes out instead);
 4. feed the set to the :class:`~mmctl.runtime.safety.SafetyMonitor`: a new fault sends
    speedStop and zero base velocity *in this same cycle*, then disables the base;
 5. the optional per-cycle sample hook (telemetry: one row into the sample ring);
@@ -42,6 +44,7 @@ import structlog
 
 from mmctl.config import Config
 from mmctl.errors import FaultCause, MmctlError
+from mmctl.runtime.calibrate import CalibrationCommands
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.devices import Devices, enabling_switch
 from mmctl.runtime.ipc import ControlServer
@@ -49,6 +52,8 @@ from mmctl.runtime.logging import RateLimiter
 from mmctl.runtime.loop import CycleLoop, Wait
 
 if TYPE_CHECKING:
+    from mmctl.control.calibration import ToolCalibration, ToolLoadFit
+    from mmctl.model.robot import RobotModel
     from mmctl.runtime.sim_link import SimLink
     from mmctl.telemetry.service import TelemetryService
 from mmctl.runtime.driver import PHASES, CycleDriver
@@ -84,7 +89,7 @@ class StartAborted(Exception):
     """A stop request arrived while :meth:`Daemon.open` was still starting."""
 
 
-class Daemon(OperatorCommands, CycleDriver):
+class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
     """Composition root of the running daemon (see the module docstring).
 
     cfg: the configuration; devices: not yet connected; core: the control chain;
@@ -139,6 +144,7 @@ class Daemon(OperatorCommands, CycleDriver):
         self._commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = (
             queue.SimpleQueue())
         self._stop_requested = threading.Event()
+        self._param_lock = threading.Lock()  # `mmctl set`: one change at a time
         self._healthy_cycle = threading.Event()
         self.stop_reason = ""
         self.sample_hook: SampleHook | None = None
@@ -175,6 +181,11 @@ class Daemon(OperatorCommands, CycleDriver):
         self._request_at_start = cfg.loop.sensor_request == "start"
         #: the newest base twist sent (None: none since the last stop)
         self._twist_sent: tuple[float, float, float] | None = None
+        #: the newest tool-load calibration (`mmctl calibrate tool`) and its fit
+        self.calibration: ToolCalibration | None = None
+        self.calibration_fit: ToolLoadFit | None = None
+        self._planner: RobotModel | None = None
+        self._planner_lock = threading.Lock()
         self._handlers = self._command_table()
 
     # ------------------------------------------------------------------ lifecycle --
@@ -361,8 +372,10 @@ class Daemon(OperatorCommands, CycleDriver):
         status right after a command shows its effect).  The loop's state is read, not
         locked; the dict returned is never changed afterwards (a new one each rebuild)."""
         s, core = self.safety, self.core
+        calib = self.calibration
         key = (s.state, s.latched, len(s.active), core.mode, core.switch, core.taring,
-               self.enabling_state(), core.profile)
+               self.enabling_state(), core.profile, len(core.changed), id(core.cfg),
+               None if calib is None else (calib.phase, calib.index, calib.closed))
         with self._snapshot_lock:
             snap = self._snapshot
             now = time.monotonic()
@@ -381,6 +394,7 @@ class Daemon(OperatorCommands, CycleDriver):
             "enabling": self.enabling_state(),
             "profile": self.core.profile,
             "caps": self.core.caps,
+            "changed": dict(self.core.changed),
             "cycles": self.cycles,
             "uptime_s": round(time.monotonic() - self._started, 3),
             "loop": {"rate_hz": self.cfg.loop.rate_hz, "running": self.loop.running,
@@ -395,6 +409,8 @@ class Daemon(OperatorCommands, CycleDriver):
                             "energy_J": round(float(last.energy.total), 6),
                             "speed_scaling": round(float(self.speed_scaling), 4),
                             "limit": last.out.limit if last.out is not None else ""}
+        if self.calibration is not None:
+            out["calibration"] = self.calibration.progress()
         if self.sim is not None:
             out["sim"] = self.sim.status()
         if self.telemetry is not None:

@@ -125,10 +125,15 @@ class CycleDriver(_Parts):
         held = (self._enabling_held(arm is not None, conditions)
                 and self._arm_repeats < self.cfg.arm.hold_cycles)
         result: CycleResult | None = None
+        # a tool-load calibration moves the arm instead of the controller, which idles
+        # meanwhile (held at rest; every fault check as when disarmed)
+        calib = self.calibration
+        if calib is not None and not calib.running:
+            calib = None
         if arm is not None and wrench is not None and odom is not None:
             t0 = time.perf_counter_ns()
-            result = self.core.step(arm, wrench, odom, tick.period, active=self.safety.armed,
-                                    held=held)
+            result = self.core.step(arm, wrench, odom, tick.period,
+                                    active=self.safety.armed and calib is None, held=held)
             self.step_ns[self.cycles % self.step_ns.shape[0]] = time.perf_counter_ns() - t0
             if result.fault is not None:
                 conditions.setdefault(result.fault, dict(result.fault_details))
@@ -137,6 +142,11 @@ class CycleDriver(_Parts):
         self.last_conditions = conditions
         if stop_now:
             self._send_stop()
+        if calib is not None:
+            result = self._calibration_cycle(
+                calib, result, wrench, self._arm_repeats < self.cfg.arm.hold_cycles)
+            if result is not None:
+                self.last = result
         # telemetry before the motion commands: their CAN frames wake the device threads,
         # which then want the GIL; a stop above is never delayed by it
         hook = self.sample_hook

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import structlog
 
+from mmctl.control.params import SETTABLE, get_value
 from mmctl.errors import FaultCause, IpcError, MmctlError, SafetyFault, TransportError
 from mmctl.runtime.ipc import Peer
 
@@ -98,6 +99,9 @@ class OperatorCommands(_Parts):
             "tare": self._cmd_tare,
             "stop": self._cmd_stop,
             "trial": self._cmd_trial,
+            "calibrate": self._cmd_calibrate,
+            "set": self._cmd_set,
+            "get": self._cmd_get,
         }
 
     def _cmd_mode(self, req: Mapping[str, Any]) -> Any:
@@ -107,6 +111,26 @@ class OperatorCommands(_Parts):
     def _cmd_profile(self, req: Mapping[str, Any]) -> Any:
         profile = _arg(req, "profile", str)
         return self._then_status(self._on_loop(lambda: self._set_profile(profile)))
+
+    def _cmd_set(self, req: Mapping[str, Any]) -> Any:
+        """A run-time parameter change (:mod:`mmctl.control.params`): validated and
+        built on this worker, installed on the loop (no velocity jump), logged."""
+        key = _arg(req, "key", str)
+        if "value" not in req:
+            raise MmctlError("'set' needs a 'value'")
+        value = req["value"]
+        with self._param_lock:  # one change at a time: none is lost to another
+            old = get_value(self.core.cfg, key)
+            cfg, controller = self.core.prepare(key, value)
+            self._on_loop(lambda: self.core.install(cfg, controller, key))
+        new = get_value(cfg, key)
+        log.info("param_set", key=key, old=old, new=new)
+        return {"key": key, "old": old, "value": new, "status": self.status_snapshot()}
+
+    def _cmd_get(self, req: Mapping[str, Any]) -> Any:
+        key = _arg(req, "key", str)
+        return {"key": key, "value": get_value(self.core.cfg, key),
+                "settable": key in SETTABLE, "changed": key in self.core.changed}
 
     def _cmd_switch(self, req: Mapping[str, Any]) -> Any:
         which = _arg(req, "to", str)

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmctl.config import Config
+from mmctl.control.calibration import ToolCalibration
 from mmctl.errors import FaultCause
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.daemon import SampleHook
@@ -26,6 +27,7 @@ from mmctl.runtime.safety import SafetyMonitor
 from mmctl.runtime.sim_link import SimLink
 from mmctl.runtime.timing import TimingRing
 from mmctl.telemetry.service import TelemetryService
+from mmctl.types import Wrench
 
 
 class DaemonParts:
@@ -60,12 +62,22 @@ class DaemonParts:
     _base_enable: threading.Lock
     _commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]]
     _stop_requested: threading.Event
+    _param_lock: threading.Lock
     _healthy_cycle: threading.Event
     _handlers: dict[str, Callable[[Mapping[str, Any]], Any]]
     _sensor_request: Callable[[], None] | None
     _request_at_start: bool
     _twist_sent: tuple[float, float, float] | None
     _button_was: bool
+    calibration: ToolCalibration | None
+
+    def _on_loop(self, fn: Callable[[], Any], timeout: float | None = None) -> Any: ...
+
+    def _cmd_calibrate(self, req: Mapping[str, Any]) -> Any: ...
+
+    def _calibration_cycle(self, c: ToolCalibration, result: CycleResult | None,
+                           wrench: Wrench | None, fresh_pose: bool) -> CycleResult | None:
+        raise NotImplementedError
 
     def status(self) -> dict[str, Any]:
         raise NotImplementedError

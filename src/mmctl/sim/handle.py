@@ -1,12 +1,15 @@
 """What the wrist sensor measures while a person pushes the handle.
 
 The person's force acts at the handle (the tool frame's origin); the sensor, nearer the
-flange, measures it in its own frame together with its moment about the sensor's
-origin, plus the handle's weight (mass ``sensor.wrench.handle_mass`` at
-``handle_com``, so gravity compensation has something to do) and a constant bias (so
-the tare has something to do).  The simulated robot's sensors (:mod:`mmctl.sim.world`)
-and the study (:mod:`mmctl.study.runner`) both feed the control chain this reading,
-so the study runs the robot's whole wrench pipeline.
+flange, measures it in its own frame (``robot.sensor_offset``, axes turned by
+``robot.sensor_rotation``) together with its moment about the sensor's origin, plus the
+handle's weight (mass ``sim.handle_mass`` at ``sim.handle_com``, by default the daemon's
+own ``sensor.wrench.handle_mass`` / ``handle_com``, so gravity compensation has
+something to do) and a constant bias ``sim.sensor_bias`` (so the tare has something to
+do).  A simulated handle that differs from the daemon's model is what `mmctl calibrate
+tool` finds.  The simulated robot's sensors (:mod:`mmctl.sim.world`) and the study
+(:mod:`mmctl.study.runner`) both feed the control chain this reading, so the study runs
+the robot's whole wrench pipeline.
 """
 
 from __future__ import annotations
@@ -17,10 +20,8 @@ from numpy.typing import ArrayLike
 from mmctl.config import Config
 from mmctl.control.wrench import G0
 from mmctl.model.planar import world_to_base
+from mmctl.model.robot import tool_in_sensor
 from mmctl.types import Vec
-
-SENSOR_BIAS = np.array([1.2, -0.7, 2.5, 0.04, -0.03, 0.02])
-"""A constant offset the simulated sensor adds (what a tare removes) [N, N m]."""
 
 
 def _cross(a: Vec, b: Vec) -> Vec:
@@ -32,17 +33,19 @@ def _cross(a: Vec, b: Vec) -> Vec:
 class HandleSensor:
     """The sensor's reading for a force at the handle (see the module docstring).
 
-    cfg: the configuration (``robot.tool_offset``/``sensor_offset``: where the force
-    acts relative to the sensor; ``sensor.wrench``: the handle's mass and centre of
-    mass); bias: (6,) the sensor's constant offset [N, N m].
+    cfg: the configuration (``robot.tool_offset``/``sensor_offset``/``sensor_rotation``:
+    where the force acts relative to the sensor; ``sim.handle_mass``/``handle_com``, else
+    ``sensor.wrench``'s: the handle's mass and centre of mass; ``sim.sensor_bias``);
+    bias: (6,) the sensor's constant offset [N, N m], instead of ``sim.sensor_bias``.
     """
 
-    def __init__(self, cfg: Config, bias: ArrayLike = SENSOR_BIAS) -> None:
-        self.lever = np.subtract(cfg.robot.tool_offset, cfg.robot.sensor_offset)
-        w = cfg.sensor.wrench
-        self.mass = float(w.handle_mass)
-        self.com = np.asarray(w.handle_com, dtype=float)
-        self.bias = np.asarray(bias, dtype=float)
+    def __init__(self, cfg: Config, bias: ArrayLike | None = None) -> None:
+        self.lever = tool_in_sensor(cfg.robot)
+        w, sim = cfg.sensor.wrench, cfg.sim
+        self.mass = float(w.handle_mass if sim.handle_mass is None else sim.handle_mass)
+        self.com = np.asarray(w.handle_com if sim.handle_com is None else sim.handle_com,
+                              dtype=float)
+        self.bias = np.asarray(sim.sensor_bias if bias is None else bias, dtype=float)
         if self.bias.shape != (6,):
             raise ValueError(f"bias must have shape (6,), got {self.bias.shape}")
 

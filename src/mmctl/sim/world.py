@@ -14,7 +14,8 @@ forever) observes the handle's true pose: the fake UR's joints, the fake drives'
 pose and the model's FK.  The hand force it applies is turned into what the sensor
 measures (:class:`~mmctl.sim.handle.HandleSensor`: the study's too): rotated into the
 sensor frame, its torque about the sensor origin, plus the handle's weight and a
-constant sensor bias.  The person's switch requests press the handle
+constant sensor bias (``sim.handle_mass``, ``handle_com``, ``sensor_bias``: the true
+values `mmctl calibrate tool` finds).  The person's switch requests press the handle
 button: UR digital input ``daemon.switch_input`` of the fake controller (as wired on
 the robot), or :attr:`SimWorld.button` when no input is configured.  While the daemon
 tares, the person lets go (:meth:`SimWorld.hold`), as a real operator would.
@@ -150,7 +151,7 @@ class SimWorld:
     def start(self) -> None:
         """Start the fakes and the person's thread (the person is idle until
         :meth:`start_human`; the sensor already measures the handle's weight)."""
-        from mmctl.model.robot import RobotModel
+        from mmctl.model.robot import RobotModel, sensor_rotation
         from mmctl.sim.fake_drives import FakeDrives
         from mmctl.sim.fake_ur import FakeURController
 
@@ -158,6 +159,7 @@ class SimWorld:
         from mmctl.control.mecanum import odometry_matrix
 
         self.model = RobotModel(cfg.robot)
+        self._r_flange_sensor = sensor_rotation(cfg.robot)
         self._odometry = odometry_matrix(cfg.base.mecanum)
         self._handle_sensor = HandleSensor(cfg)
         self._ur = FakeURController(cfg.arm.host, q_init=self.q_init).start()
@@ -252,10 +254,10 @@ class SimWorld:
             self.error = exc
             log.exception("sim_human_failed", error=repr(exc))
 
-    def _observe(self) -> tuple[Vec, Vec, Vec, Vec, Vec]:
-        """True q (9,), qd (9,), handle position and velocity in the world [m, m/s] and
-        the sensor's orientation in the base frame (3, 3) (the model's sensor and tool
-        frames are the flange's axes moved along them: same rotation as the tool)."""
+    def _observe(self) -> tuple[Vec, Vec, Vec, Vec, Vec, Vec]:
+        """True q (9,), qd (9,), handle position and velocity in the world [m, m/s], the
+        tool's and the sensor's orientation in the base frame (3, 3) (the tool frame has
+        the flange's axes, the sensor's are turned by ``robot.sensor_rotation``)."""
         arm = self.ur.state()
         x, y, yaw = self.drives.pose()
         twist = self._odometry @ self.drives.wheel_velocities()
@@ -263,7 +265,7 @@ class SimWorld:
         qd = np.concatenate((arm.qd, twist))
         kin = self.model.update(q, inertia=False)
         v_w = base_to_world(kin.J[:3] @ qd, yaw)
-        return q, qd, kin.p, v_w, kin.R_base
+        return q, qd, kin.p, v_w, kin.R_base, kin.R_base @ self._r_flange_sensor
 
     def _human_force(self, t: float, q: Vec, p: Vec, v: Vec) -> Vec:
         from mmctl.sim.human import HandleObservation
@@ -292,7 +294,7 @@ class SimWorld:
 
     def _update_locked(self) -> None:
         t = time.monotonic()
-        q, _qd, p, v, r_bs = self._observe()
+        q, _qd, p, v, r_bt, r_bs = self._observe()
         force = np.zeros(3)
         with self._lock:
             push = self.push if t < self._push_until else None
@@ -306,7 +308,7 @@ class SimWorld:
         elif self.human_on:
             force = self._human_force(t, q, p, v)
         if "wrench_over_limit" in faults:  # along the tool axis: above the force limit,
-            force = 200.0 * base_to_world(r_bs[:, 2], q[8])  # (no torque: no saturation)
+            force = 200.0 * base_to_world(r_bt[:, 2], q[8])  # (no torque: no saturation)
         self._press(t < self._press_until)
         self._wrench = self._handle_sensor.measure(force, float(q[8]), r_bs)
         self._wrench_step = step
