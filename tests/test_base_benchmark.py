@@ -52,7 +52,8 @@ def _measure(base: Base, label: str) -> None:
 
 def _cfg() -> Config:
     return config_from_dict({"base": {
-        "canopen": {"channel": f"bench-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 5.0,
+        "canopen": {"interface": "virtual", "channel": f"bench-{uuid.uuid4().hex[:10]}",
+                    "heartbeat_timeout": 5.0,
                     "sdo_timeout": 5.0},
         "serial": {"link_timeout": 5.0, "timeout": 1.0}}})
 

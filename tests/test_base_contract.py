@@ -23,7 +23,8 @@ def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Base, Any]]:
     """An unconnected Base from open_base() and the running fake it talks to."""
     cfg = config_from_dict({"base": {
         "transport": request.param,
-        "canopen": {"channel": f"contract-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 5.0,
+        "canopen": {"interface": "virtual", "channel": f"contract-{uuid.uuid4().hex[:10]}",
+                    "heartbeat_timeout": 5.0,
                     "sdo_timeout": 5.0},
         "serial": {"link_timeout": 5.0, "timeout": 1.0},
         "command_watchdog": 2.0,  # a stalled test is not a dead master

@@ -29,7 +29,8 @@ PERIOD = 0.002  # [s], the 500 Hz control period
 def make_cfg(command_watchdog: float = 2.0, **canopen: object) -> Config:
     """A config on a channel of its own; generous timeouts unless given (a loaded test
     machine must not look like a dead drive, nor a stalled test like a dead master)."""
-    co = {"channel": f"test-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 5.0,
+    co = {"interface": "virtual", "channel": f"test-{uuid.uuid4().hex[:10]}",
+          "heartbeat_timeout": 5.0,
           "sdo_timeout": 5.0, **canopen}
     return config_from_dict({"base": {"canopen": co, "command_watchdog": command_watchdog}})
 

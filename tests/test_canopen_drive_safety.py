@@ -34,7 +34,8 @@ FAST = (0.69, 0.0, 0.0)
 def make_cfg(**base: object) -> Config:
     """Default drive settings (command watchdog 0.2 s) on a channel of its own; generous
     master-side timeouts (a loaded machine must not look like a dead drive)."""
-    co = {"channel": f"safety-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 5.0,
+    co = {"interface": "virtual", "channel": f"safety-{uuid.uuid4().hex[:10]}",
+          "heartbeat_timeout": 5.0,
           "sdo_timeout": 5.0}
     return config_from_dict({"base": {"canopen": co, **base}})
 
@@ -379,7 +380,7 @@ def test_rebooted_drive_is_reported_and_fully_reconfigured_before_enabling(
 
 
 def test_disable_reaches_a_drive_whose_heartbeat_is_lost_but_answers_sdo() -> None:
-    cfg = make_cfg(canopen={"channel": f"safety-{uuid.uuid4().hex[:10]}",
+    cfg = make_cfg(canopen={"interface": "virtual", "channel": f"safety-{uuid.uuid4().hex[:10]}",
                             "heartbeat_timeout": 0.1, "sdo_timeout": 5.0})
     with FakeDrives(cfg) as fakes:
         base = CanopenBase(cfg.base, cfg.limits)

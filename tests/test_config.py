@@ -366,3 +366,31 @@ def test_q_des_inside_the_limits_and_a_private_socket() -> None:
         config_from_dict({"robot": {"q_des": [0, -1.9, 3.1, -1.57, -1.57, 0]}})
     with pytest.raises(ConfigError, match="daemon.socket_mode = '0o666': must not be world"):
         config_from_dict({"daemon": {"socket_mode": 0o666}})
+
+
+def test_the_built_in_defaults_are_the_robots_not_a_simulation() -> None:
+    """An empty configuration drives the real robot (it never starts a simulation);
+    without a configuration named, commands mean the simulated robot's profile, which
+    is installed with the package (the repository's config/sim.yaml links to it)."""
+    from mmctl.config import config_from_dict, sim_profile
+
+    empty = config_from_dict({})
+    assert not empty.sim.enabled and not empty.sim.human and not empty.sim.auto_enable
+    assert (empty.sensor.can.interface, empty.sensor.can.channel) == ("socketcan", "can0")
+    assert (empty.base.canopen.interface, empty.base.canopen.channel) == ("socketcan", "can1")
+    assert empty.arm.host == "192.168.0.100"
+    assert (ROOT / "config" / "sim.yaml").resolve() == sim_profile().resolve()
+    assert load_config(sim_profile()).sim.enabled
+
+
+def test_without_a_config_commands_use_the_installed_simulation(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from mmctl.config import sim_profile
+    from mmctl.runtime.client import default_config_path, load
+
+    monkeypatch.chdir(tmp_path)  # no ./config/sim.yaml here
+    monkeypatch.delenv("MMCTL_CONFIG", raising=False)
+    assert default_config_path() == sim_profile()
+    assert load(None).sim.enabled
+    (tmp_path / "empty.yaml").write_text("{}\n")
+    assert not load(str(tmp_path / "empty.yaml")).sim.enabled

@@ -20,7 +20,8 @@ def _config(tmp_path: Path, serial_timeout: float = 1.0, **canopen: object) -> s
     """A config file with generous timeouts (a loaded machine is not a dead link), the
     drives' own command watchdog included (a probe starved for 0.2 s under a full test
     run had its drives quick-stop: 0x8130, the master's heartbeat late)."""
-    co = {"channel": f"probe-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 5.0,
+    co = {"interface": "virtual", "channel": f"probe-{uuid.uuid4().hex[:10]}",
+          "heartbeat_timeout": 5.0,
           "sdo_timeout": 5.0, **canopen}
     lines = ["base:", "  command_watchdog: 10.0", "  canopen:"]
     lines += [f"    {k}: {v}" for k, v in co.items()]

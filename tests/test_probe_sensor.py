@@ -40,8 +40,8 @@ def test_can_simulated_json(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_can_nothing_answers(capsys: pytest.CaptureFixture[str]) -> None:
-    rc = main(["probe", "sensor", "--transport", "can", "--channel", "test-probe-nobody",
-               "--base-id", "0x21", *COMMON])
+    rc = main(["probe", "sensor", "--transport", "can", "--interface", "virtual",
+               "--channel", "test-probe-nobody", "--base-id", "0x21", *COMMON])
     err = capsys.readouterr().err
     assert rc == 2
     lines = err.strip().splitlines()
@@ -58,8 +58,9 @@ def test_can_missing_matrix_frame_is_one_line_naming_it(
     cfg.write_text("sensor:\n  can:\n    connect_timeout: 1.0\n", encoding="utf-8")
     with FakeFtCanSensor(ConstantWrench(W), channel="test-probe-matrix", base_id=0x22) as fake:
         fake.matrix_opcodes = (0x2, 0x4)
-        rc = main(["probe", "sensor", "--transport", "can", "--channel", "test-probe-matrix",
-                   "--base-id", "0x22", "--config", str(cfg), *COMMON])
+        rc = main(["probe", "sensor", "--transport", "can", "--interface", "virtual",
+                   "--channel", "test-probe-matrix", "--base-id", "0x22", "--config", str(cfg),
+                   *COMMON])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1, err
     assert err[0] == ("mmctl probe: error: calibration matrix row 0 (Fx) from the F/T sensor "

@@ -56,7 +56,7 @@ def channel() -> str:
 
 def can_cfg(ch: str, **over: object):
     base = default_config().sensor.can
-    return dataclasses.replace(base, channel=ch, **over)
+    return dataclasses.replace(base, **{"interface": "virtual", "channel": ch, **over})
 
 
 class ScriptedPeer(threading.Thread):

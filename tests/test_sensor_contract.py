@@ -47,7 +47,8 @@ class Rig:
             ch = f"test-contract-{next(_names)}"
             self.fake: Any = FakeFtCanSensor(source, channel=ch).start()
             self.cfg = dataclasses.replace(
-                cfg, transport="can", can=dataclasses.replace(cfg.can, channel=ch, timeout=0.02))
+                cfg, transport="can", can=dataclasses.replace(cfg.can, interface="virtual",
+                                                              channel=ch, timeout=0.02))
             self.bound = self.fake.quantisation_bound()
             self.status = {"error": STATUS_BUS_ERROR, "saturation": STATUS_SATURATION}
         else:

@@ -74,10 +74,10 @@ def test_a_push_into_a_singularity_stops_short_of_the_fault(rate: float) -> None
 
 def test_commands_that_reach_the_arm_late_stop_short_of_the_fault() -> None:
     """A loaded robot PC: every command 20 ms late (10 cycles); the arm runs on the
-    old command for that long and stops within 12 % of the braking's stop."""
+    old command for that long and stops within 20 % of the braking's stop."""
     worst, faults, _, wrist = _run(Controller(CFG), rate=3.0, delay=10)
     stop = CFG.safety.brake_condition * CFG.safety.max_condition
-    assert faults == 0 and worst < 1.12 * stop and wrist > 0.0, (worst, wrist)
+    assert faults == 0 and worst < 1.2 * stop and wrist > 0.0, (worst, wrist)
 
 
 def test_moving_away_from_a_singularity_is_free() -> None:

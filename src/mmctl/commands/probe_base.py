@@ -19,6 +19,7 @@ status 2 and one line such as "no drive answers on channel 'mmctl-base' (node id
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -112,22 +113,22 @@ def _drive_twist(base: Any, twist: list[float], seconds: float, rate_hz: float) 
 
 def run(args: argparse.Namespace) -> int:
     from mmctl.config import default_config, load_config
-    from mmctl.errors import MmctlError
     from mmctl.runtime.logging import setup_logging
     from mmctl.transports.base import open_base
 
     setup_logging("warning", stream=cast(TextIO, _Stderr()))  # stdout carries the report only
     # canopen logs SDO aborts itself; the probe reports them as one line instead
     logging.getLogger("canopen").setLevel(logging.CRITICAL)
-    cfg = load_config(args.config) if args.config else default_config()
+    cfg: Any = load_config(args.config) if args.config else default_config()
     transport = args.transport or cfg.base.transport
     port = args.port
     sim: Any = None
     if args.simulate:
         if transport == "canopen":
-            if cfg.base.canopen.interface != "virtual":
-                raise MmctlError("--simulate needs base.canopen.interface: virtual "
-                                 f"(not {cfg.base.canopen.interface!r})")
+            # the simulated drives run in this process: on python-can's virtual bus,
+            # whatever interface the configuration names for the robot
+            cfg = dataclasses.replace(cfg, base=dataclasses.replace(
+                cfg.base, canopen=dataclasses.replace(cfg.base.canopen, interface="virtual")))
             from mmctl.sim.fake_drives import FakeDrives
 
             sim = FakeDrives(cfg).start()

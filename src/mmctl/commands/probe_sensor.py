@@ -61,7 +61,10 @@ def _sensor_config(args: argparse.Namespace) -> Any:
     from mmctl.config import default_config, load_config
 
     cfg: Any = (load_config(args.config) if args.config else default_config()).sensor
-    can_over = {k: v for k, v in (("interface", args.interface), ("channel", args.channel),
+    # --simulate runs the fake in this process: on python-can's virtual bus unless an
+    # interface is named (then refused: a fake cannot serve a real bus)
+    interface = args.interface or ("virtual" if args.simulate else None)
+    can_over = {k: v for k, v in (("interface", interface), ("channel", args.channel),
                                   ("base_id", args.base_id)) if v is not None}
     rdt_over = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
     wrench = cfg.wrench

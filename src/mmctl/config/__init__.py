@@ -181,8 +181,21 @@ def config_from_dict(data: Any, source: str | None = None) -> Config:
 
 
 def default_config() -> Config:
-    """All defaults: the simulated robot."""
+    """All defaults: the real robot's (``sim.enabled`` false, SocketCAN ``can0`` /
+    ``can1``, the UR at 192.168.0.100); the simulated robot is :func:`sim_profile`."""
     return config_from_dict({})
+
+
+def sim_profile() -> Path:
+    """The simulated robot's configuration installed with the package (the repository's
+    config/sim.yaml is a link to it): what every command uses when no configuration is
+    named and ./config/sim.yaml does not exist."""
+    return Path(__file__).with_name("sim.yaml")
+
+
+def sim_config() -> Config:
+    """:func:`sim_profile` loaded."""
+    return load_config(sim_profile())
 
 
 class _Loader(yaml.SafeLoader):  # type: ignore[misc]  # (PyYAML: no type stubs here)

@@ -12,7 +12,8 @@ UR_JOINT_ACCELERATION_MAX = 40.0
 class ArmConfig:
     """UR10e connection and command parameters."""
 
-    host: str = param("127.0.0.2", min_len=1, doc="controller address (the fake UR in simulation)")
+    host: str = param("192.168.0.100", min_len=1,
+                      doc="the UR controller's address (the simulated robot's fake UR: sim.host)")
     frequency: float = param(
         500.0, unit="Hz", ge=1.0, le=500.0, doc="RTDE frequency",
         why="RTDE runs at up to 500 Hz on e-Series; below 1 Hz it is no control link")

@@ -41,7 +41,7 @@ class CanopenConfig:
     """Four CiA 402 drives on a CAN bus."""
 
     interface: str = can.interface()
-    channel: str = can.channel("mmctl-base")
+    channel: str = can.channel("can1")
     host: str = can.host()
     port: int = can.port()
     bitrate: int = can.bitrate()

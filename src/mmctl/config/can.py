@@ -11,7 +11,7 @@ from mmctl.config.schema import param
 
 def interface() -> Any:
     return param(
-        "virtual", min_len=1,
+        "socketcan", min_len=1,
         doc="python-can interface: 'socketcan' on the robot, 'socketcand' for the simulated "
         "robot or a remote bus (host, port), 'virtual' in one process (unit tests)")
 

@@ -93,11 +93,12 @@ class SafetyConfig:
         "digits of a double before the check trips",
     )
     brake_condition: float = param(
-        0.5, gt=0.0, le=1.0,
-        doc="singularity braking: a command that would raise the condition number is "
-        "scaled down from a quarter of this level on, to rest at brake_condition x "
-        "max_condition, so hand guiding never pushes the arm into the singular fault; "
-        "moving away is free; 1: the braking ends at the fault's own level",
+        0.25, gt=0.0, le=1.0,
+        doc="singularity braking: a command toward a singular pose is braked to rest at "
+        "the condition number brake_condition x max_condition (0.25: 2 500, where "
+        "sigma_min / sigma_max is twice the fault's), so hand guiding never pushes the "
+        "arm into the singular fault (latency carries it past by up to ~20 %); moving "
+        "away is free; 1: the braking ends at the fault's own level",
         why="a fraction of safety.max_condition")
 
 
@@ -199,11 +200,11 @@ class SimConfig:
     no hardware is configured."""
 
     enabled: bool = param(
-        True, doc="this configuration drives the simulated robot: `mmctl run` attaches to "
+        False, doc="this configuration drives the simulated robot: `mmctl run` attaches to "
         "the `mmctl sim` answering on sim.socket_path, or starts one as its child")
-    human: bool = param(True, doc="a simulated person pushes the handle")
+    human: bool = param(False, doc="a simulated person pushes the handle")
     auto_enable: bool = param(
-        True, doc="arm the simulated robot after start-up (ignored unless sim.enabled)"
+        False, doc="arm the simulated robot after start-up (ignored unless sim.enabled)"
     )
     human_seed: int = param(0, ge=0, le=2**32 - 1, doc="which simulated person (seeded parameters)",
                             why="numpy seeds are 32-bit")

@@ -14,7 +14,7 @@ class SensorCanConfig:
     """ATI Net F/T CAN layout on any python-can interface."""
 
     interface: str = can.interface()
-    channel: str = can.channel("mmctl-sensor")
+    channel: str = can.channel("can0")
     host: str = can.host()
     port: int = can.port()
     bitrate: int = can.bitrate()

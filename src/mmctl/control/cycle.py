@@ -88,6 +88,11 @@ class Readings(NamedTuple):
     held: bool = True
 
 
+
+def _pose(q: Vec) -> list[float]:
+    """The arm's part of ``q`` for a fault's details (where a singular pose was met)."""
+    return [round(float(x), 4) for x in q[:6]]
+
 class CycleChain:
     """The control chain's fixed parts (see the module docstring).
 
@@ -138,13 +143,15 @@ class CycleChain:
         if not r.active or w.taring:
             cond = self.condition(q)
             if cond > self.max_condition:  # so enabling here is refused
-                return self._idle(state, q, qd, w.f_h, FaultCause.SINGULAR, {"condition": cond})
+                return self._idle(state, q, qd, w.f_h, FaultCause.SINGULAR,
+                                  {"condition": cond, "q_arm": _pose(q), "qd_arm": _pose(qd)})
             return self._idle(state, q, qd, w.f_h, None, {}, taring=w.taring)
         ctl, out = self.controller.step(state.controller,
                                         StepInputs(w.f_h, q, qd, r.dt, not r.held))
         state = state._replace(controller=ctl)
         if out.fault is not None:
-            return self._idle(state, q, qd, w.f_h, out.fault, {"condition": out.condition})
+            return self._idle(state, q, qd, w.f_h, out.fault, {
+                "condition": out.condition, "q_arm": _pose(q), "qd_arm": _pose(qd)})
         # the controller executes speedJ at `scaling` of its speeds (speed slider, reduced
         # mode): the base goes as slowly, so the whole body moves as the IDK solved it
         twist = out.base_twist if scaling >= 1.0 else max(scaling, 0.0) * out.base_twist

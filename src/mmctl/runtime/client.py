@@ -8,27 +8,28 @@ import os
 from pathlib import Path
 from typing import Any
 
-from mmctl.config import Config, default_config, load_config
+from mmctl.config import Config, load_config, sim_profile
 from mmctl.runtime.ipc import request, resolve_socket_path
 
 #: Where the systemd service puts its socket (RuntimeDirectory=mmctl).
 SERVICE_SOCKET = Path("/run/mmctl/mmctl.sock")
 
 
-def default_config_path() -> Path | None:
-    """$MMCTL_CONFIG, else ./config/sim.yaml when it exists, else None (built-in defaults,
-    which are the simulated robot as well)."""
+def default_config_path() -> Path:
+    """$MMCTL_CONFIG, else ./config/sim.yaml when it exists, else the simulated robot's
+    profile installed with the package (:func:`mmctl.config.sim_profile`): without a
+    configuration named, every command means the simulated robot.  (The built-in
+    defaults are the real robot's: an empty file does not start a simulation.)"""
     env = os.environ.get("MMCTL_CONFIG")
     if env:
         return Path(env)
     local = Path("config") / "sim.yaml"
-    return local if local.is_file() else None
+    return local if local.is_file() else sim_profile()
 
 
 def load(path: str | None) -> Config:
     """The config named on the command line, or the default one."""
-    p = Path(path) if path else default_config_path()
-    return load_config(p) if p is not None else default_config()
+    return load_config(Path(path) if path else default_config_path())
 
 
 def add_client_arguments(p: argparse.ArgumentParser) -> None:
