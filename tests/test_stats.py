@@ -84,3 +84,55 @@ def test_analyse_shapes() -> None:
     assert [m.metric for m in out] == ["E", "T_f"]
     assert all(len(m.pairwise) == 3 for m in out)
     assert all(0.0 <= p.pvalue <= p.pvalue_corrected <= 1.0 for m in out for p in m.pairwise)
+
+
+def test_rank_biserial_by_hand() -> None:
+    from mmctl.study.stats import rank_biserial
+
+    # d = 1, -2, 3, 4, 5: R+ = 1 + 3 + 4 + 5 = 13, R- = 2 -> (13 - 2) / 15
+    assert float(rank_biserial([1.0, -2.0, 3.0, 4.0, 5.0])) == pytest.approx(11.0 / 15.0)
+    assert float(rank_biserial([0.0, 1.0, 2.0])) == 1.0  # the zero is dropped
+    assert float(rank_biserial([-1.0, -3.0])) == -1.0
+    assert float(rank_biserial([0.0, 0.0])) == 0.0
+    rows = rank_biserial(np.array([[1.0, -2.0, 3.0, 4.0, 5.0], [-1.0, -1.0, -1.0, 2.0, 0.0]]))
+    # second row: |d| ranks of 1, 1, 1, 2 (zero dropped) = 2, 2, 2, 4: (4 - 6) / 10
+    np.testing.assert_allclose(rows, [11.0 / 15.0, -0.2])
+
+
+def test_pairs_carry_exact_p_effect_and_intervals() -> None:
+    rng = np.random.default_rng(3)
+    a = rng.normal(10.0, 1.0, 27)
+    b = a - rng.normal(0.8, 1.0, 27)  # a > b for most users
+    (r,) = pairwise_wilcoxon_holm({"a": a, "b": b})
+    from scipy import stats
+
+    assert r.pvalue_exact == pytest.approx(stats.wilcoxon(a, b, method="exact").pvalue)
+    assert r.pvalue_exact_corrected == r.pvalue_exact  # a family of one
+    assert 0.3 < r.effect <= 1.0 and r.effect_ci[0] < r.effect < r.effect_ci[1]
+    assert r.diff_ci[0] < r.diff_median < r.diff_ci[1] and r.diff_ci[0] > 0.0
+    again = pairwise_wilcoxon_holm({"a": a, "b": b})[0]
+    assert again == r  # the bootstrap's seed is fixed: the same table every time
+    # all 4 users a > b (a tie and a zero difference among them): 2 / 2^4 exactly,
+    # where the normal approximation says 0.059
+    tied = pairwise_wilcoxon_holm({"a": [1.0, 2.0, 3.0, 4.0, 5.0],
+                                   "b": [1.0, 1.0, 2.0, 2.0, 2.0]})[0]
+    assert tied.pvalue_exact == pytest.approx(0.125) and tied.pvalue < 0.07
+
+
+def test_pairs_are_significant_only_after_a_significant_friedman_test() -> None:
+    """Seed 1's F_h: the pairwise p_corr was 'Significant' while the Friedman test was
+    not; gated, no pair is."""
+    (r,) = pairwise_wilcoxon_holm({"a": np.arange(27.0), "b": np.arange(27.0) - 1.0},
+                                  gated=False)
+    assert r.pvalue_corrected < 0.05 and not r.significant()
+    rng = np.random.default_rng(0)
+    values = {s: {"x": rng.normal(0.0, 1.0, 27)} for s in ("p", "q", "r")}
+    values["r"]["x"] = values["p"]["x"] + 0.35 + rng.normal(0.0, 0.3, 27)
+    (ma,) = analyse(values, ["x"])
+    assert ma.gated() == (ma.friedman.pvalue < 0.05)
+    assert all(p.gated == ma.gated() for p in ma.pairwise)
+    assert all(p.significant() == (ma.gated() and p.pvalue_corrected < 0.05)
+               for p in ma.pairwise)
+    assert ma.medians is not None
+    for name, (med, lo, hi) in ma.medians.items():
+        assert lo <= med <= hi and med == pytest.approx(float(np.median(values[name]["x"])))

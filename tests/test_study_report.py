@@ -58,7 +58,8 @@ def test_significance_table_format() -> None:
 
     tab = significance_table(analyse(values(ex), ("E", "x_f")))
     lines = tab.splitlines()
-    assert lines[0] == "| Metric | Comparison | p_corr | Significance | paper p_corr |"
+    assert lines[0].startswith("| Metric | Comparison | p_corr | Significance | paper p_corr "
+                               "| p_corr exact | r [95 % CI] |")
     assert len(lines) == 2 + 6
     assert "Locomotion vs Minimum Energy" in lines[3] and "1.682e-5" in lines[3]
     # x_f is constant per approach with a monotone shift: every user agrees

@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from mmctl.study.plots import write_figures
     from mmctl.study.report import (
         friedman_table,
+        median_ci_table,
         median_table,
         significance_table,
         write_outputs,
@@ -96,7 +97,10 @@ def run(args: argparse.Namespace) -> int:
     if len(study.strategies) >= 3:
         print("\nFriedman test:\n")
         print(friedman_table(analysis))
-    print("\nWilcoxon signed-rank, Holm-Bonferroni corrected (alpha = 0.05):\n")
+    print("\nMedians with bootstrap 95 % intervals over the users:\n")
+    print(median_ci_table(analysis))
+    print("\nWilcoxon signed-rank, Holm-Bonferroni corrected (alpha = 0.05), pairs tested "
+          "only after a significant Friedman test; r: rank-biserial effect size:\n")
     print(significance_table(analysis))
     if doc["incomplete"]:
         print(f"\nnot finished within {study.t_max:.0f} s: {', '.join(doc['incomplete'])}")

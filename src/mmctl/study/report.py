@@ -93,20 +93,49 @@ def _fmt_p(p: float) -> str:
     return f"{mant}e{int(exp)}"
 
 
+def _ci(lo: float, hi: float) -> str:
+    return f"[{_fmt(lo)}, {_fmt(hi)}]"
+
+
 def significance_table(analysis: Sequence[MetricAnalysis], alpha: float = ALPHA) -> str:
-    """Markdown table in the paper's Table IV format, with the paper's p_corr alongside."""
+    """Markdown table in the paper's Table IV format (p_corr by the normal approximation,
+    as the paper), with the exact p_corr, the effect size (rank-biserial r, positive:
+    the first approach higher) and the median paired difference with their bootstrap
+    95 % intervals, and the paper's p_corr alongside.  A pair is "Significant" only
+    after a significant Friedman test of its metric ("not tested" otherwise)."""
     lines = [
-        "| Metric | Comparison | p_corr | Significance | paper p_corr |",
-        "|---|---|---:|---|---:|",
+        ("| Metric | Comparison | p_corr | Significance | paper p_corr | p_corr exact "
+        "| r [95 % CI] | median a − b [95 % CI] |"),
+        "|---|---|---:|---|---:|---:|---|---|",
     ]
     for ma in analysis:
         for r in ma.pairwise:
             paper = PAPER_PCORR.get(ma.metric, {}).get((r.a, r.b))
             cmp_ = f"{APPROACH_NAMES.get(r.a, r.a)} vs {APPROACH_NAMES.get(r.b, r.b)}"
-            sig = "Significant" if r.significant(alpha) else "Not significant"
+            if not r.gated:
+                sig = f"Not tested (Friedman p = {_fmt_p(ma.friedman.pvalue)})"
+            else:
+                sig = "Significant" if r.significant(alpha) else "Not significant"
             pp = _fmt_p(paper) if paper is not None else "—"
             lines.append(f"| {METRIC_LABELS[ma.metric]} | {cmp_} | {_fmt_p(r.pvalue_corrected)} "
-                         f"| {sig} | {pp} |")
+                         f"| {sig} | {pp} | {_fmt_p(r.pvalue_exact_corrected)} "
+                         f"| {r.effect:+.2f} {_ci(*r.effect_ci)} "
+                         f"| {_fmt(r.diff_median)} {_ci(*r.diff_ci)} |")
+    return "\n".join(lines)
+
+
+def median_ci_table(analysis: Sequence[MetricAnalysis]) -> str:
+    """Markdown table: every approach's median of every metric with its bootstrap 95 %
+    interval over the users."""
+    approaches = list((analysis[0].medians or {}) if analysis else {})
+    lines = ["| approach | " + " | ".join(METRIC_LABELS[ma.metric] for ma in analysis) + " |",
+             "|---|" + "---|" * len(analysis)]
+    for a in approaches:
+        cells = []
+        for ma in analysis:
+            med, lo, hi = (ma.medians or {})[a]
+            cells.append(f"{_fmt(med)} {_ci(lo, hi)}")
+        lines.append(f"| {a} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -140,6 +169,9 @@ def summary(
     """The summary.json document."""
     return {
         "medians": medians(execs),
+        "medians_ci95": {
+            ma.metric: {a: list(v) for a, v in (ma.medians or {}).items()} for ma in analysis
+        },
         "friedman": {
             ma.metric: {"statistic": _num(ma.friedman.statistic), "p": _num(ma.friedman.pvalue)}
             for ma in analysis
@@ -149,6 +181,12 @@ def summary(
                 f"{r.a} vs {r.b}": {
                     "statistic": _num(r.statistic), "p": _num(r.pvalue),
                     "p_corr": _num(r.pvalue_corrected), "significant": r.significant(),
+                    "tested": r.gated, "p_exact": _num(r.pvalue_exact),
+                    "p_exact_corr": _num(r.pvalue_exact_corrected),
+                    "rank_biserial": _num(r.effect),
+                    "rank_biserial_ci95": [_num(x) for x in r.effect_ci],
+                    "median_difference": _num(r.diff_median),
+                    "median_difference_ci95": [_num(x) for x in r.diff_ci],
                 }
                 for r in ma.pairwise
             }
