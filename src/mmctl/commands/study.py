@@ -32,6 +32,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="output directory (default ./study-out)")
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
                    help="worker processes (default: CPU count)")
+    p.add_argument("--cluster", metavar="ADDRESS", default=None,
+                   help="run the executions on a Dask distributed scheduler, e.g. "
+                   "tcp://10.0.0.5:8786 (its workers need mmctl installed; pip install "
+                   "'mmctl[cluster]'); --jobs is then ignored")
     p.add_argument("--strategies", nargs="+", choices=STRATEGIES, metavar="STRATEGY",
                    default=["locomotion", "switch", "min-energy"],
                    help=f"approaches to compare, in order (any of {', '.join(STRATEGIES)}; "
@@ -65,6 +69,7 @@ class _Bar:
 def run(args: argparse.Namespace) -> int:
     from mmctl.errors import ConfigError
     from mmctl.study.config import StudyConfig
+    from mmctl.study.executor import make_executor
     from mmctl.study.plots import write_figures
     from mmctl.study.report import (
         friedman_table,
@@ -80,18 +85,23 @@ def run(args: argparse.Namespace) -> int:
     study = StudyConfig.make(quick=args.quick, users=args.users, seed=args.seed,
                              strategies=tuple(args.strategies), config_path=args.config)
     n = study.users * len(study.strategies)
+    executor = make_executor(args.jobs, args.cluster)
     print(f"mmctl study: {study.users} users x {len(study.strategies)} approaches "
-          f"({', '.join(study.strategies)}), seed {study.seed}, {args.jobs} jobs, "
+          f"({', '.join(study.strategies)}), seed {study.seed}, on {executor.name}, "
           f"{'quick task' if study.quick else 'full task'}", file=sys.stderr)
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    res = run_study(study, jobs=args.jobs, progress=_Bar(n))
+    try:
+        res = run_study(study, progress=_Bar(n), executor=executor)
+    finally:
+        executor.close()
     wall = time.perf_counter() - wall0
     meta = {"users": study.users, "seed": study.seed, "strategies": list(study.strategies),
             "quick": study.quick, "dt": study.dt}
     analysis, doc = write_outputs(args.out, res.executions, meta)
     figures = [] if args.no_figures else write_figures(res.executions, doc["median_user"], args.out)
     # workers' CPU time, plus this process's (which includes the work when jobs == 1)
-    cpu = (time.process_time() - cpu0) + (res.cpu_time if args.jobs > 1 else 0.0)
+    cpu = (time.process_time() - cpu0) + (res.cpu_time if executor.name != "in-process"
+                                          else 0.0)
     print(f"\nMedians over {study.users} users (simulation | paper):\n")
     print(median_table(res.executions))
     if len(study.strategies) >= 3:

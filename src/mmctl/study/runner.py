@@ -30,7 +30,6 @@ how many worker processes ran them.
 from __future__ import annotations
 
 import math
-import multiprocessing as mp
 import time
 from collections.abc import Callable
 from typing import NamedTuple
@@ -52,6 +51,7 @@ from mmctl.sim.human import (
 )
 from mmctl.sim.plant import Plant
 from mmctl.study.config import StudyConfig
+from mmctl.study.executor import Executor, make_executor
 from mmctl.study.results import Execution, Series
 from mmctl.study.users import draw_user
 from mmctl.types import ArmState, Odometry, Wrench
@@ -209,25 +209,21 @@ def _work(job: tuple[StudyConfig, int, str]) -> tuple[Execution, float, int]:
     return run_execution(*job)
 
 
-def run_study(study: StudyConfig, jobs: int = 1, progress: Progress | None = None) -> StudyResult:
-    """Every user with every approach, in ``jobs`` processes (1 = in this process)."""
+def run_study(study: StudyConfig, jobs: int = 1, progress: Progress | None = None,
+              executor: Executor | None = None) -> StudyResult:
+    """Every user with every approach, on ``executor`` (default: ``jobs`` local
+    processes, 1 = in this process; :mod:`mmctl.study.executor`)."""
     work = [(study, u, s) for u in range(study.users) for s in study.strategies]
     done: list[tuple[Execution, float, int]] = []
-
-    def tick(r: tuple[Execution, float, int]) -> None:
-        done.append(r)
-        if progress is not None:
-            progress(len(done), f"user {r[0].user} {r[0].strategy}")
-
-    if jobs <= 1 or len(work) == 1:
-        for job in work:
-            tick(_work(job))
-    else:
-        methods = mp.get_all_start_methods()
-        ctx = mp.get_context("fork" if "fork" in methods else "spawn")
-        with ctx.Pool(min(jobs, len(work))) as pool:
-            for r in pool.imap_unordered(_work, work):
-                tick(r)
+    run = executor if executor is not None else make_executor(jobs)
+    try:
+        for r in run.map_unordered(_work, work):
+            done.append(r)
+            if progress is not None:
+                progress(len(done), f"user {r[0].user} {r[0].strategy}")
+    finally:
+        if executor is None:
+            run.close()
     order = {s: i for i, s in enumerate(study.strategies)}
     done.sort(key=lambda r: (r[0].user, order[r[0].strategy]))
     return StudyResult([r[0] for r in done], sum(r[1] for r in done), sum(r[2] for r in done))
