@@ -7,6 +7,7 @@ free.  Closed loop on the simulated robot's own plant."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -63,7 +64,7 @@ def test_a_push_into_a_singularity_stops_short_of_the_fault(rate: float) -> None
     stop = CFG.safety.brake_condition * CFG.safety.max_condition
     assert faults == 0
     assert worst < 1.02 * stop, worst  # it rests at the braking's stop, not beyond
-    assert "singularity" in limits and 0.0 < wrist < 0.05, wrist  # held just before it
+    assert "singularity" in limits and 0.0 < wrist < 0.15, wrist  # held before it
     # the same push without the braking runs on, through the singularity (here at a
     # condition of 8380, short of the fault; the soak's pose reached 11 756: the fault)
     unbraked = Controller(CFG)
@@ -101,3 +102,34 @@ def test_brake_condition_is_a_fraction(value: float) -> None:
 
     with pytest.raises(ConfigError, match="safety.brake_condition"):
         config_from_dict({"safety": {"brake_condition": value}})
+
+
+def test_random_pushes_near_the_wrist_singularity_stay_at_the_stop() -> None:
+    """From the pose of the soak's third singular fault (wrist 2 turned 0.3 rad out of
+    it; there the condition number has a plateau near the singularity: 2 638 at
+    0.05 rad, 10 788 at 0.003), 12 pushes of 10-40 N in random directions, 4 s each,
+    in min-energy and locomotion: never past the braking's stop."""
+    import math as m
+
+    from mmctl.config import load_config
+    from mmctl.model.planar import world_to_base
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "config" / "sim.yaml")
+    stop = cfg.safety.brake_condition * cfg.safety.max_condition
+    pose = [-0.0196, -1.8276, 2.2412, -0.3881, 0.3, -1.5839, 0.0, 0.0, 0.0]
+    rng = np.random.default_rng(0)
+    for trial in range(12):
+        ctl = Controller(cfg)
+        plant = Plant(cfg, np.array(pose))
+        state = ctl.initial_state(("min-energy", "locomotion")[trial % 2])
+        a, el, mag = rng.uniform(0, 2 * m.pi), rng.uniform(-0.5, 0.5), rng.uniform(10, 40)
+        force = mag * np.array([m.cos(a) * m.cos(el), m.sin(a) * m.cos(el), m.sin(el)])
+        worst = 0.0
+        for _ in range(int(4.0 / T)):
+            q, qd = plant.state()
+            f_h = np.concatenate((world_to_base(force, float(q[8])), np.zeros(3)))
+            state, out = ctl.step(state, StepInputs(f_h, q, qd, T))
+            assert out.fault is None, (trial, out.condition)
+            worst = max(worst, out.condition)
+            plant.step(out.qdot_arm, out.base_twist, T)
+        assert worst < 1.05 * stop, (trial, worst)

@@ -93,12 +93,12 @@ class SafetyConfig:
         "digits of a double before the check trips",
     )
     brake_condition: float = param(
-        0.25, gt=0.0, le=1.0,
+        0.05, gt=0.0, le=1.0,
         doc="singularity braking: a command toward a singular pose is braked to rest at "
-        "the condition number brake_condition x max_condition (0.25: 2 500, where "
-        "sigma_min / sigma_max is twice the fault's), so hand guiding never pushes the "
-        "arm into the singular fault (latency carries it past by up to ~20 %); moving "
-        "away is free; 1: the braking ends at the fault's own level",
+        "the condition number brake_condition x max_condition (0.05: 500, where "
+        "sigma_min / sigma_max is 4.5x the fault's; near the wrist singularity wrist 2 "
+        "rests 6-8 deg from it), so hand guiding never pushes the arm into the singular "
+        "fault; moving away is free; 1: the braking ends at the fault's own level",
         why="a fraction of safety.max_condition")
 
 

@@ -69,14 +69,16 @@ class StudyConfig:
     def control_config(self, strategy: str) -> Config:
         """The control configuration of one execution: the file (or defaults) with
         ``idk.strategy`` set to ``strategy`` and ``loop.rate_hz`` to 1/dt.  The defaults
-        are the paper's robot: without the hand-guiding caps and the joint-limit
-        hand-over it did not have (``limits.body_region: none``,
-        ``idk.avoid_joint_limits: false``; a config file states its own)."""
+        are the paper's robot: without the hand-guiding caps, the joint-limit hand-over
+        and the singularity braking it did not have (``limits.body_region: none``,
+        ``idk.avoid_joint_limits: false``, ``safety.brake_condition: 1``: braked only at
+        the fault's own level; a config file states its own)."""
         if self.config_path:
             cfg = load_config(Path(self.config_path))
         else:
             cfg = default_config()
             cfg = replace(cfg, limits=replace(cfg.limits, body_region="none"),  # type: ignore[type-var]
-                          idk=replace(cfg.idk, avoid_joint_limits=False))  # type: ignore[type-var]
+                          idk=replace(cfg.idk, avoid_joint_limits=False),  # type: ignore[type-var]
+                          safety=replace(cfg.safety, brake_condition=1.0))  # type: ignore[type-var]
         return replace(cfg, idk=replace(cfg.idk, strategy=strategy),  # type: ignore[type-var]
                        loop=replace(cfg.loop, rate_hz=1.0 / self.dt))  # type: ignore[type-var]
