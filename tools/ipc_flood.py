@@ -121,10 +121,17 @@ def client_main(mode: str, path: str, n: int, seconds: float) -> None:
         s.close()
 
 
+#: niceness of the client processes (``--client-nice``): 0, or e.g. 19 to tell what the
+#: daemon's socket work costs the loop from what the clients' own CPU use costs it on a
+#: machine with few cores
+CLIENT_NICE = 0
+
+
 def _spawn(mode: str, path: Path, n: int, seconds: float) -> subprocess.Popen[bytes]:
     """A client process, started and waiting (its start-up is not in any window)."""
-    p = subprocess.Popen([sys.executable, __file__, "--client", mode, str(path), str(n),
-                          str(seconds)], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    prefix = ["nice", "-n", str(CLIENT_NICE)] if CLIENT_NICE else []
+    p = subprocess.Popen([*prefix, sys.executable, __file__, "--client", mode, str(path),
+                          str(n), str(seconds)], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
     assert p.stdout is not None
     if p.stdout.readline() != b"ready\n":
         raise RuntimeError("a flood client did not start")
@@ -313,8 +320,13 @@ def main() -> int:
                    help="miss budget: the robot's (5 consecutive) or the config's")
     p.add_argument("--config", help="base config (default: config/sim.yaml)")
     p.add_argument("--host", default="127.0.0.7", help="the fake UR's loopback address")
+    p.add_argument("--client-nice", type=int, default=0, metavar="N",
+                   help="run the flood's client processes at this niceness (e.g. 19: their "
+                   "own CPU use then yields to the daemon and the simulated robot)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
+    global CLIENT_NICE
+    CLIENT_NICE = args.client_nice
     sys.stdout.flush()
     saved = os.dup(1)
     os.dup2(2, 1)  # the daemon's and the fakes' logs stay off stdout
