@@ -852,6 +852,16 @@ def test_a_latched_arm_link_fault_reconnects_even_when_reads_look_fine(
     assert rig.daemon.safety.armed
 
 
+def _arm_speeds(rig: Rig, cycles: int) -> list[float]:
+    """The largest joint speed of each cycle's speedJ (every cycle must send one)."""
+    speeds = []
+    for _ in range(cycles):
+        cmds = rig.step()
+        assert names(cmds)[:1] == ["arm.speed_j"], cmds
+        speeds.append(float(np.abs(cmds[0].args[0]).max()))
+    return speeds
+
+
 def test_released_the_armed_robot_comes_to_rest_and_stays_armed(
         make_rig: Callable[..., Rig]) -> None:
     """The enabling switch released under a push: no fault; the speedJ commands fall to
@@ -861,11 +871,7 @@ def test_released_the_armed_robot_comes_to_rest_and_stays_armed(
     rig.arm_and_push()
     assert rig.daemon.status()["enabling"] == "held"
     rig.arm.inputs = 0
-    speeds = []
-    for _ in range(400):
-        cmds = rig.step()
-        assert names(cmds)[:1] == ["arm.speed_j"], cmds
-        speeds.append(float(np.abs(cmds[0].args[0]).max()))
+    speeds = _arm_speeds(rig, 400)
     assert rig.daemon.safety.armed and rig.daemon.safety.faults == 0
     assert rig.daemon.status()["enabling"] == "released"
     assert speeds[0] > 0.0 and speeds[-1] == 0.0
@@ -887,11 +893,7 @@ def test_no_motion_on_a_stale_arm_pose(make_rig: Callable[..., Rig]) -> None:
     for _ in range(200):
         assert_moves(rig.step())  # pushed up to speed
     rig.arm.frozen = True
-    speeds = []
-    for _ in range(400):
-        cmds = rig.step()
-        assert names(cmds)[:1] == ["arm.speed_j"], cmds
-        speeds.append(float(np.abs(cmds[0].args[0]).max()))
+    speeds = _arm_speeds(rig, 400)
     assert rig.daemon.safety.armed and rig.daemon.safety.faults == 0
     assert speeds[0] > 0.0 and speeds[-1] == 0.0
     first_slower = next(i for i, (a, b) in enumerate(itertools.pairwise(speeds)) if b < a)

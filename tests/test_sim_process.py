@@ -155,6 +155,15 @@ def test_a_second_sim_on_the_same_socket_refuses(sim: Sim) -> None:
     assert sim.call("status")["pid"] == sim.proc.pid
 
 
+def _run_daemon(sim: Sim, out: Path) -> subprocess.Popen[bytes]:
+    """`mmctl run` on the simulation's configuration, its JSON log appended to ``out``."""
+    with out.open("ab") as f:
+        return subprocess.Popen(
+            [sys.executable, "-m", "mmctl.cli", "run", "--config", str(sim.config),
+             "--log-json"], stdout=f, stderr=subprocess.STDOUT, cwd=str(ROOT),
+            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
 def test_run_attaches_to_a_running_sim_and_leaves_it_running(sim: Sim) -> None:
     """`mmctl run` finds the simulation on its socket: it starts none of its own, tares
     and arms (sim.auto_enable), the push that was on all along moves the handle (the
@@ -164,11 +173,7 @@ def test_run_attaches_to_a_running_sim_and_leaves_it_running(sim: Sim) -> None:
     sock = sim.tmp / "mmctl.sock"
     sim.call("push", force=[0.0, 30.0, 0.0])  # before the daemon starts, through its tare
     p0 = np.array(sim.call("status")["handle_world"])
-    with out.open("ab") as f:
-        daemon = subprocess.Popen(
-            [sys.executable, "-m", "mmctl.cli", "run", "--config", str(sim.config),
-             "--log-json"], stdout=f, stderr=subprocess.STDOUT, cwd=str(ROOT),
-            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    daemon = _run_daemon(sim, out)
     try:
         sim.wait_for(lambda: request(sock, "status", timeout=30.0)["state"] == "armed",
                      "the daemon to arm")
@@ -209,11 +214,7 @@ def test_the_enabling_switch_through_the_fake_urs_inputs(sim: Sim) -> None:
         st = sim.call("status")
         return max(abs(v) for v in st["arm_qd"] + st["wheel_velocities"]) < 1e-6
 
-    with out.open("ab") as f:
-        daemon = subprocess.Popen(
-            [sys.executable, "-m", "mmctl.cli", "run", "--config", str(sim.config),
-             "--log-json"], stdout=f, stderr=subprocess.STDOUT, cwd=str(ROOT),
-            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    daemon = _run_daemon(sim, out)
     try:
         sim.wait_for(lambda: daemon_status()["state"] == "armed", "the daemon to arm")
         assert daemon_status()["enabling"] == "held"

@@ -44,10 +44,8 @@ def check_pose(q: list[float], cfg: Any) -> None:
                              f"[{lo + m:.4f}, {hi - m:.4f}] rad (limits.joint_position_min/max "
                              f"{lo:.4f}/{hi:.4f} and limits.position_margin {m:g}); move the "
                              "arm and record again")
-    model = RobotModel(cfg.robot)
-    J = model.jacobian(np.concatenate((np.asarray(q, dtype=float), np.zeros(3))))
-    w = np.linalg.eigvalsh(J @ J.T)
-    cond = float(w[-1] / w[0]) if w[0] > 0 else float("inf")
+    cond = RobotModel(cfg.robot).condition(np.concatenate((np.asarray(q, dtype=float),
+                                                           np.zeros(3))))
     if cond > cfg.safety.max_condition / 10:
         raise MmctlError(f"the pose is close to a singular configuration (condition "
                          f"{cond:.3g}, the fault is at safety.max_condition = "

@@ -294,9 +294,7 @@ class Move:
 
 
 def _condition(model: RobotModel, q_a: Vec) -> float:
-    jac = model.jacobian(np.concatenate((q_a, np.zeros(3))))
-    w = np.linalg.eigvalsh(jac @ jac.T)
-    return float(w[-1] / w[0]) if w[0] > 0.0 else math.inf
+    return model.condition(np.concatenate((q_a, np.zeros(3))))
 
 
 class Plan(NamedTuple):

@@ -161,9 +161,7 @@ class CycleChain:
 
     def condition(self, q: Vec) -> float:
         """Condition number of J J^T at ``q`` (the controller's singularity measure)."""
-        jac = self.model.jacobian(q)
-        w = np.linalg.eigvalsh(jac @ jac.T)
-        return float(w[-1] / w[0]) if w[0] > 0.0 else math.inf
+        return self.model.condition(q)
 
     def _idle(self, state: CycleState, q: Vec, qd: Vec, f_h: Vec, fault: FaultCause | None,
               details: dict[str, Any], taring: bool = False

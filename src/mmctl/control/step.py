@@ -381,9 +381,7 @@ class Controller:
             return 1.0
         r = 1.0 / math.sqrt(cond)
         h = min(0.01, 1e-3 / speed)
-        jac = self.model.jacobian(q + h * qdot)
-        w = np.linalg.eigvalsh(jac @ jac.T)
-        r_next = math.sqrt(w[0] / w[-1]) if w[0] > 0.0 and w[-1] > 0.0 else 0.0
+        r_next = 1.0 / math.sqrt(self.model.condition(q + h * qdot))  # 0 where singular
         rate = (r - r_next) / h  # [1/s] > 0: toward the singular pose
         if not rate > 0.0:
             return 1.0

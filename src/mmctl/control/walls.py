@@ -189,19 +189,24 @@ class Walls:
                 break  # no corner sharper than 90 deg: one pass is exact
         return vx, vy, bound
 
+    def _bound_base_frame(self, vx: float, vy: float, q: Vec) -> tuple[float, float, bool]:
+        """:meth:`filter_area` for a velocity given in the frame of the base at ``q``."""
+        c, s = math.cos(q[8]), math.sin(q[8])
+        wx, wy, bound = self.filter_area(c * vx - s * vy, s * vx + c * vy,
+                                         float(q[6]), float(q[7]))
+        return c * wx + s * wy, -s * wx + c * wy, bound
+
     def filter_twist_area(self, v: Vec, q: Vec) -> tuple[Vec, bool]:
         """The admittance's twist ``v`` (6,) (base axes) with its world-horizontal
         velocity out of the area bounded by the *base's* distances (the base
         follows the handle in the strategies that move it)."""
         if self.normals is None:
             return v, False
-        c, s = math.cos(q[8]), math.sin(q[8])
-        wx, wy = c * v[0] - s * v[1], s * v[0] + c * v[1]
-        nx, ny, bound = self.filter_area(wx, wy, float(q[6]), float(q[7]))
+        vx, vy, bound = self._bound_base_frame(float(v[0]), float(v[1]), q)
         if not bound:
             return v, False
         out = v.copy()
-        out[0], out[1] = c * nx + s * ny, -s * nx + c * ny
+        out[0], out[1] = vx, vy
         return out, True
 
     def clamp_base(self, qdot: Vec, q: Vec) -> tuple[Vec, bool]:
@@ -209,12 +214,9 @@ class Walls:
         the area bounded (the arm's part and the yaw rate kept)."""
         if self.normals is None:
             return qdot, False
-        c, s = math.cos(q[8]), math.sin(q[8])
-        vx, vy = float(qdot[6]), float(qdot[7])
-        wx, wy = c * vx - s * vy, s * vx + c * vy
-        nx, ny, bound = self.filter_area(wx, wy, float(q[6]), float(q[7]))
+        vx, vy, bound = self._bound_base_frame(float(qdot[6]), float(qdot[7]), q)
         if not bound:
             return qdot, False
         out = qdot.copy()
-        out[6], out[7] = c * nx + s * ny, -s * nx + c * ny
+        out[6], out[7] = vx, vy
         return out, True

@@ -182,6 +182,13 @@ class RobotModel:
         """The (6, 9) whole-body Jacobian J = [J_a J_b] of the tool, control frame."""
         return self.update(q, inertia=False).J
 
+    def condition(self, q: Mat) -> float:
+        """The condition number of J J^T at ``q`` (9,) (inf where it is singular): the
+        controller's singularity measure."""
+        jac = self.jacobian(q)
+        w = np.linalg.eigvalsh(jac @ jac.T)
+        return float(w[-1] / w[0]) if w[0] > 0.0 else math.inf
+
     def arm_inertia(self, q_a: Mat) -> Mat:
         """M_a(q_a) (6, 6) [kg m^2], UR10e joint-space inertia (CRBA)."""
         m: Mat = pin.crba(self.arm, self.arm_data, np.asarray(q_a[:NA], dtype=float)).copy()
