@@ -224,6 +224,22 @@ def test_enable_and_a_push_moves_the_end_effector_that_way(daemon: Proc) -> None
     assert daemon.status()["state"] == "armed"
 
 
+def test_the_socket_process_restarts_and_the_robot_carries_on(daemon: Proc) -> None:
+    """The control socket is served by a process of its own; a crash of it (SIGKILL)
+    is not the robot's business: it stays armed, moving, and a new one serves."""
+    assert _armed(daemon)
+    first = daemon.status()["process"]["socket_process"]
+    assert first["pid"] not in (None, daemon.proc.pid)
+    p0 = _ee(daemon)
+    os.kill(first["pid"], signal.SIGKILL)
+    st = daemon.status()  # waits in the listen backlog for the next one
+    assert st["state"] == "armed", st
+    now = st["process"]["socket_process"]
+    assert now["starts"] == first["starts"] + 1 and now["pid"] not in (None, first["pid"])
+    _moves(daemon, p0, 0.02, "the end-effector to go on moving")
+    assert "ipc_process_restarted" in daemon.log_text()
+
+
 def _armed(daemon: Proc) -> bool:
     """Armed (a fault of any cause fails)."""
     st = daemon.status()
@@ -339,6 +355,7 @@ def test_parameters_change_at_run_time(daemon: Proc,
 
 def test_sigterm_stops_with_the_stop_commands_sent(daemon: Proc) -> None:
     assert _armed(daemon)  # still moving under the push
+    socket_pid = daemon.status()["process"]["socket_process"]["pid"]
     daemon.proc.send_signal(signal.SIGTERM)
     assert daemon.proc.wait(120) == 0, daemon.log_text()[-3000:]
     wait_for(lambda: "STOPPING=1" in daemon.drain_notify(), "STOPPING=1")
@@ -364,6 +381,7 @@ def test_sigterm_stops_with_the_stop_commands_sent(daemon: Proc) -> None:
         assert any(d["counts"] for d in mine), "the base never moved"
         assert mine[-1]["counts"] == 0
     assert not daemon.socket.exists()
+    assert not Path(f"/proc/{socket_pid}").exists()  # the socket's process ended with it
 
 
 def test_no_daemon_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

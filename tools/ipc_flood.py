@@ -28,6 +28,7 @@ consecutive misses) unless ``--budget sim``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -125,11 +126,15 @@ def client_main(mode: str, path: str, n: int, seconds: float) -> None:
 #: daemon's socket work costs the loop from what the clients' own CPU use costs it on a
 #: machine with few cores
 CLIENT_NICE = 0
+#: the CPUs the client processes may run on (``--loop-cpu``: all but the loop's)
+CLIENT_CPUS = ""
 
 
 def _spawn(mode: str, path: Path, n: int, seconds: float) -> subprocess.Popen[bytes]:
     """A client process, started and waiting (its start-up is not in any window)."""
     prefix = ["nice", "-n", str(CLIENT_NICE)] if CLIENT_NICE else []
+    if CLIENT_CPUS:
+        prefix = ["taskset", "-c", CLIENT_CPUS, *prefix]
     p = subprocess.Popen([*prefix, sys.executable, __file__, "--client", mode, str(path),
                           str(n), str(seconds)], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
     assert p.stdout is not None
@@ -170,22 +175,39 @@ def _collect(procs: list[subprocess.Popen[bytes]]) -> dict[str, Any]:
 # -- the daemon (this process) ---------------------------------------------------------------
 def _window(daemon: Any, seconds: float, flood: list[subprocess.Popen[bytes]] | None
             ) -> dict[str, Any]:
-    from mmctl.runtime.timing import summarize
+    import numpy as np
+
+    from mmctl.runtime.driver import PHASES
+    from mmctl.runtime.timing import cycle_rows, summarize
 
     ring = daemon.ring
     c0 = ring.count
     cpu0 = _cpu()
+    gw = getattr(daemon.server, "pid", None)
+    gw0 = _proc_cpu(gw)
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end:
         time.sleep(0.05)
     cpu = _cpu() - cpu0
+    gw_cpu = _proc_cpu(gw) - gw0
     snap = ring.snapshot(ring.count - c0)
     st = summarize(snap)
+    phases = {}
+    for k, name in enumerate(PHASES):  # where the compute time went, per device
+        us = cycle_rows(daemon.phase_ns[k], snap) / 1e3
+        us = us[us > 0]
+        if len(us):
+            phases[name] = round(float(np.percentile(us, 99)), 1)
+    step = cycle_rows(daemon.step_ns, snap) / 1e3
+    if (step > 0).any():
+        phases["step"] = round(float(np.percentile(step[step > 0], 99)), 1)
     fig: dict[str, Any] = {"cycles": st.cycles, "misses": st.missed,
                            "overrun_cycles": int((snap.missed > 0).sum()),
                            "latency_p99_us": round(float(st.latency_p99_us), 1),
                            "compute_p99_us": round(float(st.compute_p99_us), 1),
-                           "daemon_cpu_s": round(cpu, 3)}
+                           "daemon_cpu_s": round(cpu, 3),
+                           "socket_process_cpu_s": round(gw_cpu, 3),
+                           "phase_p99_us": phases}
     if flood is not None:
         fig["clients"] = _collect(flood)
     return fig
@@ -195,6 +217,39 @@ def _cpu() -> float:
     """CPU time of this process so far (the daemon: loop, socket, telemetry) [s]."""
     ru = resource.getrusage(resource.RUSAGE_SELF)
     return ru.ru_utime + ru.ru_stime
+
+
+def _realtime(root: int, priority: int) -> list[int]:
+    """SCHED_FIFO ``priority`` for process ``root`` and its descendants, all threads."""
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(d.name))
+    todo, done = [root], []
+    while todo:
+        pid = todo.pop()
+        done.append(pid)
+        todo += children.get(pid, [])
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+    return done
+
+
+def _proc_cpu(pid: int | None) -> float:
+    """CPU time of another process so far (the control socket's own process) [s]; 0 for
+    none."""
+    if pid is None:
+        return 0.0
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -217,14 +272,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             cfg.sensor.can, interface="socketcand", host=args.host)),
         base=dataclasses.replace(cfg.base, canopen=dataclasses.replace(
             cfg.base.canopen, interface="socketcand", host=args.host)),
-        loop=dataclasses.replace(cfg.loop, timing_samples=int(cfg.loop.rate_hz * 3 *
+        daemon=dataclasses.replace(cfg.daemon, socket_process=not args.in_process),
+        loop=dataclasses.replace(cfg.loop, rt_priority=args.rt_priority,
+                                 cpu_affinity=() if args.loop_cpu is None else (args.loop_cpu,),
+                                 timing_samples=int(cfg.loop.rate_hz * 3 *
                                                                args.window) + 2000, **budget),
         sim=dataclasses.replace(cfg.sim, enabled=True, human=True, auto_enable=False,
                                 host=args.host, socket_path=str(tmp / "sim.sock")),
     )
     path = tmp / "mmctl.sock"
     daemon = create_daemon(cfg, socket_path=path)
-    out: dict[str, Any] = {"window_s": args.window, "rounds": args.rounds, "hold": args.hold,
+    out: dict[str, Any] = {"socket_process": not args.in_process,
+                           "rt_priority": args.rt_priority, "loop_cpu": args.loop_cpu,
+                           "sim_priority": args.sim_priority, "client_nice": args.client_nice,
+                           "window_s": args.window, "rounds": args.rounds, "hold": args.hold,
                            "burst": args.burst, "budget": args.budget,
                            "cpus": os.cpu_count(), "loadavg_1min": os.getloadavg()[0],
                            "windows": {"quiet": [], "hold": [], "burst": []}}
@@ -232,6 +293,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     try:
         daemon.open()
         daemon.start()
+        if args.sim_priority:  # the simulated devices answer like hardware: whatever the load
+            assert daemon.sim is not None and daemon.sim.pid is not None
+            out["sim_processes"] = _realtime(daemon.sim.pid, args.sim_priority)
         tare_and_enable(daemon)
         assert daemon.sim is not None
         daemon.sim.start_human()
@@ -245,6 +309,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             w["quiet"].append(_window(daemon, args.window, None))
             burst = [_spawn("burst", path, per, args.window) for _ in range(args.burst_procs)]
             w["burst"].append(_window(daemon, args.window, _go(burst)))
+        # what one rebuild of the status snapshot costs the daemon (at most 10 a second)
+        t = time.perf_counter()
+        for _ in range(20):
+            daemon.status()
+        out["status_build_us"] = round((time.perf_counter() - t) / 20 * 1e6, 1)
         out["armed_before_stop"] = daemon.safety.armed
         out["faults"] = daemon.safety.faults
         out["fault"] = daemon.safety.as_dict().get("fault")
@@ -279,10 +348,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _print(r: dict[str, Any]) -> None:
+    where = "its own process" if r["socket_process"] else "the daemon's process"
+    print(f"control socket served in {where} (cpu s: the daemon's; sock s: the socket's "
+          "own process)")
     print(f"control-socket floods, {r['rounds']} rounds of {r['window_s']:g} s windows, "
           f"{r['cpus']} CPUs, load {r['loadavg_1min']:.2f}, miss budget: {r['budget']}")
     print(f"{'window':8} {'misses':>7} {'lat p99 us':>11} {'comp p99 us':>12} "
-          f"{'cpu s':>6}  clients")
+          f"{'cpu s':>6} {'sock s':>6}  clients")
     for kind in ("quiet", "hold", "burst"):
         for x in r["windows"][kind]:
             c = x.get("clients")
@@ -294,7 +366,8 @@ def _print(r: dict[str, Any]) -> None:
                     lm = c["latency_ms"]
                     extra += f"; reply ms p50 {lm['p50']} p99 {lm['p99']} max {lm['max']}"
             print(f"{kind:8} {x['misses']:>7} {x['latency_p99_us']:>11} "
-                  f"{x['compute_p99_us']:>12} {x['daemon_cpu_s']:>6}  {extra}")
+                  f"{x['compute_p99_us']:>12} {x['daemon_cpu_s']:>6} "
+                  f"{x['socket_process_cpu_s']:>6}  {extra}")
     for kind in ("quiet", "hold", "burst"):
         cpu = [x["daemon_cpu_s"] for x in r["windows"][kind]]
         print(f"{kind} misses per window: {r[f'{kind}_misses']}; daemon CPU s: {cpu}")
@@ -323,10 +396,26 @@ def main() -> int:
     p.add_argument("--client-nice", type=int, default=0, metavar="N",
                    help="run the flood's client processes at this niceness (e.g. 19: their "
                    "own CPU use then yields to the daemon and the simulated robot)")
+    p.add_argument("--rt-priority", type=int, default=0, metavar="P",
+                   help="the loop's SCHED_FIFO priority (loop.rt_priority; the robot's "
+                   "configuration; 0: the simulated robot's, the ordinary scheduler)")
+    p.add_argument("--sim-priority", type=int, default=0, metavar="P",
+                   help="run the simulated robot's processes SCHED_FIFO at this priority "
+                   "(below --rt-priority): its devices then answer as hardware does, "
+                   "whatever the clients' CPU use (0: the ordinary scheduler)")
+    p.add_argument("--loop-cpu", type=int, metavar="N",
+                   help="pin the loop to CPU N (loop.cpu_affinity, as on the robot) and run "
+                   "everything else (the simulated robot, the socket's process, the "
+                   "clients) on the other CPUs")
+    p.add_argument("--in-process", action="store_true",
+                   help="serve the control socket on the daemon's threads "
+                   "(daemon.socket_process: false) instead of its own process")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
-    global CLIENT_NICE
+    global CLIENT_NICE, CLIENT_CPUS
     CLIENT_NICE = args.client_nice
+    if args.loop_cpu is not None:
+        CLIENT_CPUS = ",".join(str(c) for c in sorted(os.sched_getaffinity(0) - {args.loop_cpu}))
     sys.stdout.flush()
     saved = os.dup(1)
     os.dup2(2, 1)  # the daemon's and the fakes' logs stay off stdout

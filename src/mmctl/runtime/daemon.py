@@ -47,7 +47,8 @@ from mmctl.errors import FaultCause, MmctlError
 from mmctl.runtime.calibrate import CalibrationCommands
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.devices import Devices, enabling_switch
-from mmctl.runtime.ipc import ControlServer
+from mmctl.runtime.ipc import ControlServer, Handler
+from mmctl.runtime.ipc_process import ProcessControlServer
 from mmctl.runtime.logging import RateLimiter
 from mmctl.runtime.loop import CycleLoop, Wait
 
@@ -83,6 +84,25 @@ STOP_SIGNALS = tuple(getattr(signal, name) for name in (
 #: (:meth:`Daemon.status_snapshot`): a flood of status requests costs at most ten
 #: rebuilds a second
 STATUS_MAX_AGE = 0.1
+#: [s] the longest the loop's timing figures in ``status`` (5 s percentiles) are reused
+STATS_MAX_AGE = 1.0
+
+
+def _control_server(cfg: Config, path: Path, handler: Handler) -> ControlServer | ProcessControlServer:
+    """The control socket: ``status`` from the snapshot (inline), ``stop`` and ``disable``
+    never queued behind other clients' requests (see :mod:`mmctl.runtime.ipc`); in a
+    process of its own unless ``daemon.socket_process`` is false."""
+    kw: dict[str, Any] = {"inline": ("status",), "urgent": ("stop", "disable")}
+    if not cfg.daemon.socket_process:
+        return ControlServer(path, handler, cfg.daemon.socket_mode, **kw)
+    from mmctl.runtime import logging as mmctl_logging
+
+    cpus: tuple[int, ...] = ()
+    loop_cpus = set(cfg.loop.cpu_affinity)
+    if loop_cpus and hasattr(os, "sched_getaffinity"):
+        cpus = tuple(sorted(os.sched_getaffinity(0) - loop_cpus))  # off the loop's CPUs
+    return ProcessControlServer(path, handler, cfg.daemon.socket_mode,
+                                log_setup=mmctl_logging.CURRENT, cpus=cpus, **kw)
 
 
 class StartAborted(Exception):
@@ -136,11 +156,11 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         self.period = 1.0 / cfg.loop.rate_hz
         # status: a snapshot (inline, on the socket's selector thread); stop and disable
         # never queue behind other clients' requests (see mmctl.runtime.ipc)
-        self.server = (ControlServer(socket_path, self.handle, cfg.daemon.socket_mode,
-                                     inline=("status",), urgent=("stop", "disable"))
+        self.server = (_control_server(cfg, socket_path, self.handle)
                        if socket_path is not None else None)
         self._snapshot: tuple[float, tuple[Any, ...], dict[str, Any]] | None = None
-        self._snapshot_lock = threading.Lock()
+        self._snapshot_lock = threading.RLock()  # (status() in it asks for loop_stats)
+        self._loop_stats: tuple[float, dict[str, Any]] | None = None
         self._commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = (
             queue.SimpleQueue())
         self._stop_requested = threading.Event()
@@ -383,9 +403,20 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
                 snap = self._snapshot = (now, key, self.status())
         return snap[2]
 
+    def loop_stats(self) -> dict[str, Any]:
+        """The loop's timing over the last 5 s, recomputed at most every
+        :data:`STATS_MAX_AGE` (percentiles over 2 500 cycles: about a millisecond of the
+        interpreter the loop shares, the largest part of a status by far)."""
+        with self._snapshot_lock:
+            cached = self._loop_stats
+            now = time.monotonic()
+            if cached is None or now - cached[0] > STATS_MAX_AGE:
+                stats = self.ring.stats(min(self.ring.size, int(self.cfg.loop.rate_hz * 5)))
+                cached = self._loop_stats = (now, stats.as_dict())
+        return cached[1]
+
     def status(self) -> dict[str, Any]:
         """Plain-JSON snapshot for ``mmctl status`` (any thread)."""
-        stats = self.ring.stats(min(self.ring.size, int(self.cfg.loop.rate_hz * 5)))
         out: dict[str, Any] = {
             **self.safety.as_dict(),
             "mode": self.core.mode,
@@ -398,7 +429,7 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
             "cycles": self.cycles,
             "uptime_s": round(time.monotonic() - self._started, 3),
             "loop": {"rate_hz": self.cfg.loop.rate_hz, "running": self.loop.running,
-                     "total_misses": self.loop.total_misses, **stats.as_dict()},
+                     "total_misses": self.loop.total_misses, **self.loop_stats()},
             "commands": dict(self.commands_sent),
             "config": self.cfg.name,
         }
@@ -420,6 +451,10 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
             # on the robot and on the simulated robot alike: no simulation code in here
             "simulation_loaded": any(m in sys.modules for m in ("mmctl.sim", "mmctl.study")),
         }
+        if isinstance(self.server, ProcessControlServer):
+            # the control socket's own process (None between a crash and its restart)
+            out["process"]["socket_process"] = {"pid": self.server.pid,
+                                                "starts": self.server.started}
         return out
 
 

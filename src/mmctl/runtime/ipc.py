@@ -148,6 +148,43 @@ def _probe(path: Path, timeout: float = 1.0) -> bool:
         s.close()
 
 
+def bind_control_socket(path: Path, mode: int, backlog: int) -> socket.socket:
+    """A listening Unix socket on ``path`` (mode bits ``mode``): refuses if a live daemon
+    answers there (:class:`DaemonRunning`), replaces a stale file left by a dead one."""
+    path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+    if path.exists() or path.is_symlink():
+        st = path.lstat()
+        if not stat.S_ISSOCK(st.st_mode):
+            raise DaemonRunning(f"{path} exists and is not a socket; remove it or "
+                                "choose another daemon.socket_path")
+        if _probe(path):
+            raise DaemonRunning(f"another mmctl daemon is already running on {path}")
+        log.warning("ipc_stale_socket_replaced", path=str(path))
+        path.unlink()
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+    try:
+        s.bind(str(path))
+        os.chmod(path, mode)
+        s.listen(backlog)
+    except BaseException:
+        s.close()
+        raise
+    return s
+
+
+def call_handler(handler: Handler, req: Mapping[str, Any], peer: Peer) -> dict[str, Any]:
+    """The reply to one parsed request: ``{"ok": true, "result": ...}``, or a one-line
+    error for a :class:`MmctlError` (and, logged, for any other exception: a bad
+    request must not kill the daemon)."""
+    try:
+        return {"ok": True, "result": handler(req, peer)}
+    except MmctlError as exc:
+        return {"ok": False, "error": str(exc)}
+    except Exception as exc:  # noqa: BLE001 -- reply, log, carry on
+        log.error("ipc_handler_failed", cmd=req.get("cmd"), error=repr(exc))
+        return {"ok": False, "error": f"internal error: {exc!r}"}
+
+
 @dataclass(frozen=True)
 class IpcLimits:
     """What one control socket lets its clients cost (see the module docstring).
@@ -275,12 +312,13 @@ class ControlServer:
 
     def __init__(self, path: Path | str, handler: Handler, mode: int = 0o660, *,
                  limits: IpcLimits | None = None, inline: Iterable[str] = (),
-                 urgent: Iterable[str] = ()):
+                 urgent: Iterable[str] = (), quick: Iterable[str] = ()):
         self.path = Path(path)
         self.mode = mode
         self.limits = limits if limits is not None else IpcLimits()
         self.inline = frozenset(inline)
         self.urgent = frozenset(urgent)
+        self.quick = frozenset(quick)
         self._handler = handler
         self._sock: socket.socket | None = None
         self._inode: int | None = None
@@ -301,6 +339,7 @@ class ControlServer:
         self._enc_line = b""
         self._workers: _Workers | None = None
         self._urgent_worker: _Workers | None = None
+        self._quick_worker: _Workers | None = None
         self.requests = 0
         self.errors = 0
         #: what the limits did: connections evicted at the cap, dropped idle, accept
@@ -315,23 +354,15 @@ class ControlServer:
 
     def open(self) -> None:
         """Bind the socket; refuse if a live daemon owns it, replace a stale file."""
-        self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
-        if self.path.exists() or self.path.is_symlink():
-            st = self.path.lstat()
-            if not stat.S_ISSOCK(st.st_mode):
-                raise DaemonRunning(f"{self.path} exists and is not a socket; remove it or "
-                                    "choose another daemon.socket_path")
-            if _probe(self.path):
-                raise DaemonRunning(f"another mmctl daemon is already running on {self.path}")
-            log.warning("ipc_stale_socket_replaced", path=str(self.path))
-            self.path.unlink()
-        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
-        s.bind(str(self.path))
-        os.chmod(self.path, self.mode)
-        s.listen(self.limits.backlog)
-        s.setblocking(False)
-        self._sock = s
-        self._inode = self.path.stat().st_ino
+        self.adopt(bind_control_socket(self.path, self.mode, self.limits.backlog), owned=True)
+
+    def adopt(self, sock: socket.socket, owned: bool = False) -> None:
+        """Serve ``sock``, a listening socket bound to :attr:`path` (another process's:
+        the daemon's, for the socket's own process); ``owned``: :meth:`close` removes
+        the socket file (else it is left to its owner)."""
+        sock.setblocking(False)
+        self._sock = sock
+        self._inode = self.path.stat().st_ino if owned else None
         self._wake_r, self._wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
 
     def start(self) -> None:
@@ -340,6 +371,8 @@ class ControlServer:
             self.open()
         self._workers = _Workers(max(1, self.limits.workers), "mmctl-ipc-worker")
         self._urgent_worker = _Workers(2, "mmctl-ipc-urgent")
+        if self.quick:
+            self._quick_worker = _Workers(4, "mmctl-ipc-quick")
         self._thread = threading.Thread(target=self._serve, name="mmctl-ipc", daemon=True)
         self._thread.start()
 
@@ -351,7 +384,7 @@ class ControlServer:
         self._wake()
         if self._thread is not None:
             self._thread.join(2.0)
-        for w in (self._workers, self._urgent_worker):
+        for w in (self._workers, self._urgent_worker, self._quick_worker):
             if w is not None:
                 w.close()
         if self._thread is None or not self._thread.is_alive():
@@ -613,12 +646,20 @@ class ControlServer:
                 conn.pending = req
                 self._waiting.append(conn)
             else:
-                self._run(conn, req, None if cmd in self.inline else self._workers)
+                self._run(conn, req, self._lane(cmd))
         if (conn.eof and not (conn.busy or conn.out or conn.fd in self._throttled)
                 and (conn.closing or b"\n" not in conn.inbuf)):
             self._drop(conn)  # all it sent is answered
             return
         self._update(conn)
+
+    def _lane(self, cmd: str) -> _Workers | None:
+        """Where a (non-urgent) command runs: None = on the selector thread."""
+        if cmd in self.inline:
+            return None
+        if cmd in self.quick and self._quick_worker is not None:
+            return self._quick_worker
+        return self._workers
 
     def _run(self, conn: _Conn, req: dict[str, Any], workers: _Workers | None) -> None:
         if workers is None:
@@ -627,7 +668,7 @@ class ControlServer:
         conn.busy = True
 
         def job() -> None:
-            line = _encode(self._call(req, conn.peer))
+            line = encode_reply(self._call(req, conn.peer))
             self._done.put((conn, line))
             self._wake()
 
@@ -652,7 +693,7 @@ class ControlServer:
             req, conn.pending = conn.pending, None
             conn.busy = False
             if self._alive(conn) and req is not None:
-                self._run(conn, req, None if req["cmd"] in self.inline else self._workers)
+                self._run(conn, req, self._lane(req["cmd"]))
                 self._advance(conn)
         for fd, due in list(self._throttled.items()):
             if due <= now:
@@ -693,7 +734,7 @@ class ControlServer:
         if cache and obj is not None and obj is self._enc_obj:
             line = self._enc_line
         else:
-            line = _encode(reply)
+            line = encode_reply(reply)
             if cache and isinstance(obj, dict):
                 self._enc_obj, self._enc_line = obj, line
         conn.out += line
@@ -749,15 +790,10 @@ class ControlServer:
         return req
 
     def _call(self, req: Mapping[str, Any], peer: Peer) -> dict[str, Any]:
-        try:
-            return {"ok": True, "result": self._handler(req, peer)}
-        except MmctlError as exc:
+        reply = call_handler(self._handler, req, peer)
+        if not reply["ok"]:
             self.errors += 1
-            return {"ok": False, "error": str(exc)}
-        except Exception as exc:  # noqa: BLE001 -- reply, log, carry on: a bad request must not kill the daemon
-            self.errors += 1
-            log.error("ipc_handler_failed", cmd=req.get("cmd"), error=repr(exc))
-            return {"ok": False, "error": f"internal error: {exc!r}"}
+        return reply
 
     def _dispatch(self, line: bytes, peer: Peer) -> dict[str, Any]:
         """One request line to its reply, on the calling thread (no limits: tests, fuzz)."""
@@ -785,7 +821,7 @@ def json_depth(line: bytes, limit: int = 32) -> int:
     return int(depth.max())
 
 
-def _encode(reply: Mapping[str, Any]) -> bytes:
+def encode_reply(reply: Mapping[str, Any]) -> bytes:
     try:
         return json.dumps(reply, default=_json_default).encode() + b"\n"
     except (TypeError, ValueError, RecursionError) as exc:
@@ -796,13 +832,13 @@ def _encode(reply: Mapping[str, Any]) -> bytes:
 def _send_now(sock: socket.socket, obj: Mapping[str, Any]) -> None:
     """Best effort, never blocking: one line to a connection about to be closed."""
     try:
-        sock.send(_encode(obj))
+        sock.send(encode_reply(obj))
     except OSError:
         pass
 
 
 def _send(conn: socket.socket, obj: Mapping[str, Any]) -> None:
-    conn.sendall(_encode(obj))
+    conn.sendall(encode_reply(obj))
 
 
 def _json_default(o: Any) -> Any:
