@@ -201,3 +201,15 @@ def test_a_daemon_killed_outright_ends_its_gateway(tmp_path: Path) -> None:
     backend.shutdown(socket.SHUT_RDWR)
     assert proc.wait(10) == 0
     srv.close()
+
+
+def test_opened_but_never_started_closes_cleanly(tmp_path: Path) -> None:
+    """A daemon whose devices fail to connect closes the socket it opened: the socket's
+    process (started by open) ends, the file is gone."""
+    srv = ProcessControlServer(tmp_path / "mmctl.sock", Backend(), inline=("status",))
+    srv.open()
+    proc = srv._proc
+    assert proc is not None and proc.poll() is None
+    srv.close()
+    assert proc.poll() is not None
+    assert not srv.path.exists()

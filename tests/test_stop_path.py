@@ -26,7 +26,7 @@ import pytest
 
 from mmctl.errors import IpcError
 from mmctl.runtime.ipc import request
-from simconfig import write_sim_config
+from simconfig import LOAD_PROOF, write_sim_config
 from waiting import wait_while_alive
 
 pytestmark = pytest.mark.timeout(600)
@@ -37,13 +37,14 @@ _hosts = iter(range(2, 250))
 class Daemon:
     """One `mmctl run` subprocess, optionally in a process group of its own."""
 
-    def __init__(self, tmp: Path, own_group: bool = False) -> None:
+    def __init__(self, tmp: Path, own_group: bool = False,
+                 extra: dict[str, Any] | None = None) -> None:
         digits = "".join(c for c in os.environ.get("PYTEST_XDIST_WORKER", "gw0") if c.isdigit())
         host = f"127.{10 + int(digits or 0)}.{203 + os.getpid() % 40}.{next(_hosts)}"
         self.socket = tmp / "run" / "mmctl.sock"
         self.config = write_sim_config(host, tmp, {
             "name": "stop-path-test", "sim": {"human": False, "auto_enable": False},
-            "daemon": {"socket_path": str(self.socket)}})
+            "daemon": {"socket_path": str(self.socket)}, **(extra or {})})
         self.sim_socket = tmp / "sim.sock"
         self.sim_log = tmp / "simlog"
         self.out = tmp / "daemon.log"
@@ -163,8 +164,12 @@ def test_a_frozen_daemon_leaves_the_arm_at_rest(daemon: Daemon) -> None:
     assert not any(st["arm_qd"])  # at rest
     assert not any(st["wheel_velocities"]), st  # the drives quick-stopped by themselves
     daemon.wait_for(lambda: daemon.call("status"), "the socket after SIGCONT")
-    daemon.wait_for(lambda: "arm_not_playing" in daemon.call("status")["conditions"],
-                    "the daemon to find the stopped program")
+    # the daemon finds the stopped program; on a loaded machine its first reads after
+    # the freeze may instead go unanswered long enough that the arm's process ends
+    # itself (arm_stale, then arm_disconnected): the arm is out of its hands either way
+    lost = {"arm_not_playing", "arm_stale", "arm_disconnected"}
+    daemon.wait_for(lambda: lost & set(daemon.call("status")["conditions"]),
+                    "the daemon to find the stopped program (or the arm lost)")
     daemon.proc.send_signal(signal.SIGTERM)
     assert daemon.proc.wait(120) == 0, daemon.log_text()[-3000:]
     programs = [c for c in daemon.ur_log() if c["kind"] == "program"]
@@ -174,7 +179,8 @@ def test_a_frozen_daemon_leaves_the_arm_at_rest(daemon: Daemon) -> None:
 
 @pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1])
 def test_every_terminating_signal_is_a_stop(tmp_path: Path, sig: signal.Signals) -> None:
-    d = Daemon(tmp_path)
+    # (the signal is the subject: every staleness budget beyond a loaded machine's reach)
+    d = Daemon(tmp_path, extra=LOAD_PROOF)
     try:
         d.ready()
         d.arm_and_push([0.0, 25.0, 0.0])
@@ -193,7 +199,7 @@ def test_every_terminating_signal_is_a_stop(tmp_path: Path, sig: signal.Signals)
 def test_ctrl_c_reaches_only_the_daemon_which_stops_the_robot_first(tmp_path: Path) -> None:
     """A terminal's Ctrl-C signals the whole foreground process group: here the daemon's
     own group (start_new_session) gets SIGINT, as from a terminal."""
-    d = Daemon(tmp_path, own_group=True)
+    d = Daemon(tmp_path, own_group=True, extra=LOAD_PROOF)
     try:
         d.ready()
         d.arm_and_push([0.0, 25.0, 0.0])

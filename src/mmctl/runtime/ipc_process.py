@@ -112,6 +112,8 @@ class ProcessControlServer:
         self._urgent_worker: _Workers | None = None
         self._proc: subprocess.Popen[bytes] | None = None
         self._backend: socket.socket | None = None
+        self._first: socket.socket | None = None
+        """the connection to the process :meth:`open` started (taken by the reader)"""
         self._send_lock = threading.Lock()
         self._enc_obj: Any = None
         self._enc_line = b""
@@ -127,9 +129,16 @@ class ProcessControlServer:
         return None if proc is None or proc.poll() is not None else proc.pid
 
     def open(self) -> None:
-        """Bind the socket (refuse if a live daemon owns it, replace a stale file)."""
+        """Bind the socket (refuse if a live daemon owns it, replace a stale file) and
+        start the socket's process: its start-up (an interpreter, its imports) then
+        overlaps the devices' connection, not the loop's first cycles.  Requests wait
+        in the private connection until :meth:`start`."""
         self._listen = bind_control_socket(self.path, self.mode, self.limits.backlog)
         self._inode = self.path.stat().st_ino
+        try:
+            self._first = self._spawn()
+        except OSError as exc:
+            log.error("ipc_process_start_failed", error=str(exc), why="started again by start()")
 
     def start(self, timeout: float = START_TIMEOUT) -> None:
         """Start the gateway, the reader thread and the workers; wait (at most
@@ -158,6 +167,9 @@ class ProcessControlServer:
             except OSError:
                 pass
         _end(self._proc)
+        if self._first is not None:  # started by open(), never taken by a reader
+            self._first.close()
+            self._first = None
         if self._thread is not None:
             self._thread.join(2.0)
         for w in (self._workers, self._urgent_worker):
@@ -177,7 +189,7 @@ class ProcessControlServer:
         while not self._closing.is_set():
             began = time.monotonic()
             try:
-                backend = self._spawn()
+                backend, self._first = self._first or self._spawn(), None
             except OSError as exc:
                 log.error("ipc_process_start_failed", error=str(exc))
             else:
