@@ -10,6 +10,7 @@ import pytest
 
 from mmctl.sim.human import (
     QUICK_HOLES,
+    WALL_FAMILY,
     HandleObservation,
     HumanAction,
     HumanParams,
@@ -17,8 +18,12 @@ from mmctl.sim.human import (
     SimulatedHuman,
     SwitchPolicy,
     Task,
+    WallFamily,
+    draw_wall_layout,
     min_jerk,
+    noise_seed,
     peg_in_hole_task,
+    wall_task,
 )
 
 DT = 0.002
@@ -223,3 +228,150 @@ def test_params_validation() -> None:
         HumanParams(f_comfort=50.0, f_max=40.0)
     with pytest.raises(ValueError):
         Task(())
+
+
+# --- the wall task, the layout family, the hold, the button press, the motor noise ---
+
+FWD = np.array([1.0, 0.0, 0.0])
+
+
+def test_wall_task_geometry() -> None:
+    """Approach points on the wall plane (vertical, its normal against the peg), each
+    bottom ``depth`` along the peg, the heights as given, w to the robot's left."""
+    holes = ((0.0, 1.0), (0.4, 0.85), (-0.3, 1.25))
+    task = wall_task(START, FWD, holes, standoff=0.1, depth=0.05)
+    assert task.surface is not None
+    point, normal = np.array(task.surface.point), np.array(task.surface.normal)
+    np.testing.assert_allclose(normal, -FWD)  # out of the wall, toward the robot
+    np.testing.assert_allclose(point, START + 0.1 * FWD)
+    for h, (w, z) in zip(task.holes, holes):
+        ap, bt = np.array(h.approach), np.array(h.bottom)
+        assert (ap - point) @ normal == pytest.approx(0.0, abs=1e-12)  # on the wall plane
+        np.testing.assert_allclose(bt - ap, 0.05 * FWD, atol=1e-12)  # along the normal
+        assert ap[2] == pytest.approx(z)
+        assert ap[1] - START[1] == pytest.approx(w)  # heading x: left is +y
+    # a robot turned by 90 deg: the wall ahead of it, left is -x
+    task = wall_task(START, [0.0, 1.0, 0.0], ((0.3, 1.1),), standoff=0.0)
+    np.testing.assert_allclose(task.holes[0].approach, [START[0] - 0.3, START[1], 1.1], atol=1e-12)
+    # a slightly tilted peg still gives a vertical wall; a peg pointing down cannot
+    tilted = wall_task(START, [1.0, 0.0, 0.05], ((0.0, 1.0),), standoff=0.1)
+    assert tilted.surface is not None and tilted.surface.normal[2] == 0.0
+    with pytest.raises(ValueError, match="horizontal"):
+        wall_task(START, DOWN, ((0.0, 1.0),), standoff=0.1)
+
+
+def test_wall_layout_family_is_seeded() -> None:
+    fam = WALL_FAMILY
+    layouts = {seed: draw_wall_layout(seed, fam, handle_height=1.05) for seed in range(12)}
+    for seed, lay in layouts.items():
+        assert lay == draw_wall_layout(seed, fam, handle_height=1.05)  # deterministic
+        assert fam.holes[0] <= len(lay) <= fam.holes[1]
+        w = np.array([h[0] for h in lay])
+        z = np.array([h[1] for h in lay])
+        assert np.all((z >= fam.heights[0]) & (z <= fam.heights[1]))
+        assert 1.05 in z  # one hole at the start handle's height
+        assert fam.near_edge[0] <= w.min() and w.max() <= fam.far_edge[1]
+        # spread beyond the arm's reach, holes apart along the wall
+        assert w.max() > fam.far_edge[0] - (fam.far_edge[0] - fam.near_edge[1]) / 4
+        assert np.diff(np.sort(w)).min() > 0.08
+    # the family varies: counts, spreads, heights and orders differ across seeds
+    assert len(set(layouts.values())) == len(layouts)
+    assert len({len(v) for v in layouts.values()}) > 1
+    # a layout does not depend on the handle height except for its one hole
+    a, b = draw_wall_layout(3, fam, 1.0), draw_wall_layout(3, fam, 1.2)
+    assert sum(x != y for x, y in zip(a, b)) == 1 and [x[0] for x in a] == [x[0] for x in b]
+    with pytest.raises(ValueError, match="holes"):
+        WallFamily(holes=(3, 2))
+
+
+def _closed_loop(p: HumanParams, task: Task, button: bool = True, seed: int = 0,
+                 t_max: float = 60.0) -> tuple[SimulatedHuman, list[tuple[float, HumanAction]]]:
+    human = SimulatedHuman(p, task, noise_seed=seed, button=button)
+    robot = PointRobot(START)
+    out = []
+    for k in range(int(t_max / DT)):
+        act = human.update(HandleObservation(k * DT, robot.x, robot.v, np.zeros(3)))
+        out.append((k * DT, act))
+        if act.phase is Phase.DONE:
+            break
+        robot.step(act.force, DT)
+    return human, out
+
+
+def test_the_hold_follows_t_f_and_leaves_it_alone() -> None:
+    task = quick_task()
+    short, _ = _closed_loop(HumanParams(hold_time=0.0), task)
+    held, trace = _closed_loop(HumanParams(hold_time=1.5), task)
+    assert short.finish_time is not None and held.finish_time == short.finish_time
+    assert held.hold_end == pytest.approx(held.finish_time + 1.5, abs=2 * DT)
+    hold = [t for t, a in trace if a.phase is Phase.HOLD]
+    assert hold and min(hold) >= held.finish_time - DT and trace[-1][1].phase is Phase.DONE
+    assert all(a.done for t, a in trace if t >= held.finish_time)
+    # the peg stays in: the handle is held at the last hole's bottom
+    last = np.array(task.holes[-1].bottom)
+    assert all(np.linalg.norm(a.force) < 10.0 for t, a in trace if t in hold)
+    assert short.hold_end is None and last.shape == (3,)
+
+
+def test_the_button_press_costs_time_only_with_a_button() -> None:
+    task = quick_task()  # one hole beyond the comfortable reach: one press there
+    none, trace_none = _closed_loop(HumanParams(), task, button=False)
+    free, _ = _closed_loop(HumanParams(press_time=0.0), task, button=True)
+    slow, trace = _closed_loop(HumanParams(press_time=0.5), task, button=True)
+    assert none.presses == 0 and not any(a.switch_request for _, a in trace_none)
+    assert all(a.phase is not Phase.PRESS for _, a in trace_none)
+    assert slow.presses == free.presses >= 2  # to locomotion and back
+    pressing = [t for t, a in trace if a.phase is Phase.PRESS]
+    assert len(pressing) * DT == pytest.approx(slow.presses * 0.5, abs=slow.presses * 2 * DT)
+    # the request goes out when the press ends
+    sent = [t for t, a in trace if a.switch_request]
+    assert len(sent) == slow.presses and all(t > min(pressing) for t in sent)
+    assert none.finish_time is not None and free.finish_time is not None
+    assert slow.finish_time is not None and slow.finish_time > free.finish_time + 0.5
+
+
+def test_motor_noise_is_signal_dependent_and_seeded() -> None:
+    """Same seed: the same noise whatever the person observes; the noise is
+    cv ||f|| eta on every axis (none at rest); another seed, another stream."""
+    task = quick_task()
+    p = HumanParams(force_cv=0.05)
+    quiet = HumanParams(force_cv=0.0)
+    a, tr_a = _closed_loop(p, task, seed=11, t_max=8.0)
+    _, tr_b = _closed_loop(p, task, seed=11, t_max=8.0, button=False)
+    _, tr_c = _closed_loop(p, task, seed=12, t_max=8.0)
+    def eta(tr: list[tuple[float, HumanAction]]) -> np.ndarray:
+        return np.array([x.noise for _, x in tr])
+
+    n = min(len(tr_a), len(tr_b))
+    np.testing.assert_array_equal(eta(tr_a)[:n], eta(tr_b)[:n])
+    assert np.abs(eta(tr_a)[:n] - eta(tr_c)[:n]).max() > 0.5
+    e = eta(tr_a)
+    assert 0.7 < e.std() < 1.3  # unit variance (per axis)
+    # replay the noisy run's observations into a noise-free twin: the difference is
+    # cv ||f|| eta
+    noisy = SimulatedHuman(p, task, noise_seed=11)
+    clean = SimulatedHuman(quiet, task, noise_seed=11)
+    robot = PointRobot(START)
+    for k in range(3000):
+        obs = HandleObservation(k * DT, robot.x.copy(), robot.v.copy(), np.zeros(3))
+        fa, fb = noisy.update(obs), clean.update(obs)
+        mag = float(np.linalg.norm(fb.force))
+        assert fa.noise is not None
+        np.testing.assert_allclose(fa.force - fb.force, 0.05 * mag * fa.noise, atol=1e-9)
+        if mag == 0.0:
+            np.testing.assert_array_equal(fa.force, 0.0)
+        robot.step(fa.force, DT)
+    assert a.finish_time is None  # 8 s: still working (the check above ran mid-task)
+
+
+def test_noise_seed_is_per_user_not_per_approach() -> None:
+    s = noise_seed(4, 2)
+    assert s.entropy == noise_seed(4, 2).entropy and s.spawn_key == noise_seed(4, 2).spawn_key
+    g1, g2, g3 = (np.random.default_rng(x) for x in (noise_seed(4, 2), noise_seed(4, 2),
+                                                       noise_seed(4, 3)))
+    r1, r2, r3 = g1.standard_normal(5), g2.standard_normal(5), g3.standard_normal(5)
+    np.testing.assert_array_equal(r1, r2)
+    assert not np.allclose(r1, r3)
+    # apart from the user's parameters' stream SeedSequence([seed, user])
+    user = np.random.default_rng(np.random.SeedSequence([4, 2])).standard_normal(5)
+    assert not np.allclose(r1, user)

@@ -1,5 +1,8 @@
 """The simulated robot's one plant (`mmctl.sim.plant`): the fake UR's joints and the fake
-drives' wheels, commanded as the daemon commands them, in simulated time."""
+drives' wheels, commanded as the daemon commands them, in simulated time.
+
+These tests run the ideal base (no latency, velocity loop or slip: ``IDEAL``); the base's
+dynamics are tested in ``test_base_dynamics.py``."""
 
 from __future__ import annotations
 
@@ -10,12 +13,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mmctl.config import default_config
+from mmctl.config import config_from_dict
 from mmctl.control.mecanum import twist_to_wheels
 from mmctl.sim.plant import Plant
 
 DT = 0.002
-CFG = default_config()
+IDEAL = {"base_latency": 0.0, "base_velocity_tau": 0.0, "base_slip_longitudinal": 0.0,
+         "base_slip_lateral": 0.0}
+CFG = config_from_dict({"sim": IDEAL})
 ARM_ACC = CFG.arm.speedj_acceleration
 WHEEL_ACC = CFG.limits.base_linear_acceleration / CFG.base.mecanum.wheel_radius
 finite = st.floats(-2.0, 2.0, allow_nan=False)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 from pathlib import Path
 
@@ -12,7 +14,7 @@ import pytest
 from mmctl.cli import main
 from mmctl.errors import ConfigError
 from mmctl.model import RobotModel
-from mmctl.sim.human import HandleObservation, HumanAction, SimulatedHuman
+from mmctl.sim.human import HandleObservation, HumanAction, Phase, SimulatedHuman, noise_seed
 from mmctl.study.config import StudyConfig
 from mmctl.study.report import results_csv
 from mmctl.study.runner import run_execution, run_study, start_configuration, study_task
@@ -24,9 +26,12 @@ USERS = 2
 @pytest.fixture(scope="module")
 def quick_cli(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("study")
-    rc = main(["study", "--quick", "--users", str(USERS), "--seed", "7", "--jobs", "2",
-               "--out", str(out)])
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        rc = main(["study", "--quick", "--users", str(USERS), "--seed", "7", "--jobs", "2",
+                   "--out", str(out)])
     assert rc == 0
+    (out / "stdout.txt").write_text(printed.getvalue())
     return out
 
 
@@ -46,13 +51,17 @@ def test_quick_study_writes_every_output(quick_cli: Path, capsys: pytest.Capture
         assert 0.03 < float(r["v"]) < 0.5
         assert 0.0 <= float(r["x_f"]) < 1.5
         assert 3.0 < float(r["T_f"]) < 60.0
-        # the human asks to switch whatever the approach (one far hole)
-        assert int(r["switches"]) >= 1
+        assert 0.0 <= float(r["x_f_hold"]) < 1.5
+        # one far hole: the switch user presses the button; the others have none
+        assert (int(r["switches"]) >= 1) if r["strategy"] == "switch" else r["switches"] == "0"
     doc = json.loads((quick_cli / "summary.json").read_text())
     assert set(doc["medians"]) == {"locomotion", "switch", "min-energy"}
     for med in doc["medians"].values():
-        assert set(med) == {"E", "F_h", "v", "x_f", "T_f"}
-    assert set(doc["friedman"]) == {"E", "F_h", "v", "x_f", "T_f"}
+        assert set(med) == {"E", "F_h", "v", "x_f", "T_f", "x_f_hold"}
+    assert set(doc["friedman"]) == {"E", "F_h", "v", "x_f", "T_f", "x_f_hold"}
+    assert doc["task"] == "wall" and len(doc["holes_approach"]) == 2
+    printed = (quick_cli / "stdout.txt").read_text()
+    assert "x_f hold [m] sim | paper" in printed and "| x_f hold [m] |" in printed
     pairs = {"locomotion vs switch", "locomotion vs min-energy", "switch vs min-energy"}
     for metric in ("E", "F_h", "v", "x_f", "T_f"):
         assert set(doc["pairwise"][metric]) == pairs
@@ -87,9 +96,9 @@ def test_human_sees_no_mode_in_a_closed_loop_run() -> None:
         assert not ex.completed and ex.T_f == pytest.approx(3.0, abs=0.01)  # t_max reached
         logs[strategy] = log
     cfg = study.control_config("min-energy")
-    task = study_task(RobotModel(cfg.robot), start_configuration(cfg), study.holes)
+    task = study_task(RobotModel(cfg.robot), start_configuration(cfg), study)
     for log in logs.values():
-        fresh = SimulatedHuman(draw_user(3, 0), task)
+        fresh = SimulatedHuman(draw_user(3, 0), task, noise_seed=noise_seed(3, 0), button=False)
         for obs, act in log:
             again = fresh.update(obs)
             np.testing.assert_array_equal(again.force, act.force)
@@ -105,3 +114,110 @@ def test_bad_arguments() -> None:
     with pytest.raises(ConfigError):
         StudyConfig(users=0)
     assert main(["study", "--jobs", "0"]) == 2
+
+
+# --- issue 19: the wall task, the hold, the button, the noise in closed loop ---
+
+
+def test_the_wall_task_at_the_study_start_pose() -> None:
+    """At the wall pose the peg (tool z) is horizontal and points forward; the holes lie
+    on a vertical wall ahead, at heights within the family's range, one at the handle's
+    height, the farthest beyond the UR10e's 1.3 m reach from its mount."""
+    study = StudyConfig()
+    cfg = study.control_config("min-energy")
+    model = RobotModel(cfg.robot)
+    q0 = start_configuration(cfg)
+    kin = model.update(q0, inertia=False)
+    assert kin.R_base[:, 2] @ np.array([1.0, 0.0, 0.0]) > 0.999
+    task = study_task(model, q0, study)
+    assert task.surface is not None
+    normal = np.array(task.surface.normal)
+    np.testing.assert_allclose(normal, [-1.0, 0.0, 0.0], atol=1e-5)  # q_des to 0.1 mrad
+    heights = []
+    mount = np.array(cfg.robot.arm_mount[:2])
+    far = 0.0
+    for h in task.holes:
+        ap, bt = np.array(h.approach), np.array(h.bottom)
+        assert (ap - np.array(task.surface.point)) @ normal == pytest.approx(0.0, abs=1e-12)
+        np.testing.assert_allclose(bt - ap, -study.wall.depth * normal, atol=1e-12)
+        heights.append(ap[2])
+        far = max(far, float(np.linalg.norm(ap[:2] - mount)))
+    lo, hi = study.wall.heights
+    assert all(lo <= z <= hi for z in heights)
+    assert min(abs(z - kin.p[2]) for z in heights) < 1e-12
+    assert far > 1.3
+    assert study.wall.holes[0] <= len(task.holes) <= study.wall.holes[1]
+    # the board task keeps the configuration's pose (tool down): a horizontal board
+    board = StudyConfig(task="board")
+    bcfg = board.control_config("min-energy")
+    btask = study_task(RobotModel(bcfg.robot), start_configuration(bcfg), board)
+    assert btask.surface is not None
+    np.testing.assert_allclose(btask.surface.normal, [0.0, 0.0, 1.0], atol=1e-5)
+    assert len(btask.holes) == len(board.holes)
+
+
+def test_the_wall_task_needs_a_horizontal_peg() -> None:
+    study = StudyConfig()
+    cfg = StudyConfig(task="board").control_config("locomotion")  # q_des: tool down
+    with pytest.raises(ConfigError, match="robot.q_des.*horizontal"):
+        study_task(RobotModel(cfg.robot), start_configuration(cfg), study)
+    with pytest.raises(ConfigError, match="study.task"):
+        StudyConfig(task="floor")
+
+
+class _Hold:
+    """A study variant whose users hold for ``hold`` seconds."""
+
+    def __init__(self, hold: float) -> None:
+        self.hold = hold
+
+    def config(self, cfg):  # type: ignore[no-untyped-def]
+        return cfg
+
+    def chain(self, cfg):  # type: ignore[no-untyped-def]
+        from mmctl.control.cycle import CycleChain
+
+        return CycleChain(cfg)
+
+    def user(self, seed: int, index: int):  # type: ignore[no-untyped-def]
+        from dataclasses import replace
+
+        return replace(draw_user(seed, index), hold_time=self.hold)
+
+
+def test_the_hold_moves_x_f_hold_and_not_t_f() -> None:
+    study = StudyConfig.make(quick=True, users=1, seed=5)
+    held, _, n_held = run_execution(study, 0, "min-energy")
+    none, _, n_none = run_execution(study, 0, "min-energy", variant=_Hold(0.0))
+    assert held.completed and none.completed
+    for m in ("E", "F_h", "v", "x_f", "T_f"):  # every metric stops at T_f
+        assert held.metric(m) == none.metric(m), m
+    assert none.x_f_hold == none.x_f
+    assert abs(held.x_f_hold - held.x_f) > 1e-4  # the null-space task went on
+    assert n_held - n_none == pytest.approx(draw_user(5, 0).hold_time / study.dt, abs=3)
+
+
+def test_only_the_switch_user_presses_and_the_noise_is_the_users() -> None:
+    """The switch approach's user presses (and pauses) for the far hole; the others
+    never do; the motor noise is the same stream in every approach."""
+    study = StudyConfig.make(quick=True, users=1, seed=7)
+    logs: dict[str, list[HumanAction]] = {}
+    execs = {}
+    for strategy in ("locomotion", "switch", "min-energy"):
+        log: list[HumanAction] = []
+        execs[strategy], _, _ = run_execution(study, 0, strategy,
+                                              observe=lambda o, a, log=log: log.append(a))
+        logs[strategy] = log
+    press = draw_user(7, 0).press_time
+    for strategy, log in logs.items():
+        pressing = sum(1 for a in log if a.phase is Phase.PRESS) * study.dt
+        if strategy == "switch":
+            assert execs[strategy].switches >= 2
+            assert pressing == pytest.approx(execs[strategy].switches * press, abs=0.02)
+        else:
+            assert pressing == 0.0 and execs[strategy].switches == 0
+            assert not any(a.switch_request for a in log)
+    n = min(len(v) for v in logs.values())
+    ref = np.array([a.noise for a in logs["locomotion"][:n]])
+    for strategy in ("switch", "min-energy"):
+        np.testing.assert_array_equal(np.array([a.noise for a in logs[strategy][:n]]), ref)

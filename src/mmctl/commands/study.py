@@ -11,6 +11,8 @@ summary.json and the figures (boxplots.png, velocity.png, energy.png) into --out
   mmctl study                         # 27 users x (locomotion, switch, min-energy)
   mmctl study --quick                 # 3 users, a two-hole task (a smoke test)
   mmctl study --strategies locomotion switch min-energy constrained-min-energy
+  mmctl study sweep --quick --users 3         # the inertia-weighting sweep (sweep.csv/.png)
+  mmctl study sensitivity --trajectories 4    # Morris screening of the conclusions
 """
 
 from __future__ import annotations
@@ -41,6 +43,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"approaches to compare, in order (any of {', '.join(STRATEGIES)}; "
                    "default: locomotion switch min-energy)")
     p.add_argument("--quick", action="store_true", help="short task and few users")
+    p.add_argument("--task", choices=("wall", "board"), default="wall",
+                   help="wall: the paper's (holes in a vertical wall, horizontal "
+                   "insertion, a layout drawn per seed; default); board: holes in a "
+                   "horizontal board at handle height")
     p.add_argument("--config", default=None, help="control configuration YAML "
                    "(default: built-in defaults)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
@@ -48,6 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="replicate the whole study over N populations (seeds SEED .. "
                    "SEED+N-1; each in OUT/seed-K) and report in how many each of the "
                    "paper's claims holds (OUT/replication.md, .json)")
+    _add_analyses(p)
 
 
 class _Bar:
@@ -82,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         significance_table,
         write_outputs,
     )
-    from mmctl.study.runner import run_study
+    from mmctl.study.runner import run_study, task_of
 
     if args.jobs < 1:
         raise ConfigError("--jobs", args.jobs, "must be >= 1")
@@ -91,12 +98,14 @@ def run(args: argparse.Namespace) -> int:
     if args.seeds > 1:
         return _replicate(args)
     study = StudyConfig.make(quick=args.quick, users=args.users, seed=args.seed,
-                             strategies=tuple(args.strategies), config_path=args.config)
+                             strategies=tuple(args.strategies), config_path=args.config,
+                             task=args.task)
+    task = task_of(study)  # a start pose the task cannot use fails here, before the run
     n = study.users * len(study.strategies)
     executor = make_executor(args.jobs, args.cluster)
     print(f"mmctl study: {study.users} users x {len(study.strategies)} approaches "
           f"({', '.join(study.strategies)}), seed {study.seed}, on {executor.name}, "
-          f"{'quick task' if study.quick else 'full task'}", file=sys.stderr)
+          f"{'quick' if study.quick else 'full'} {study.task} task", file=sys.stderr)
     wall0, cpu0 = time.perf_counter(), time.process_time()
     try:
         res = run_study(study, progress=_Bar(n), executor=executor)
@@ -104,9 +113,11 @@ def run(args: argparse.Namespace) -> int:
         executor.close()
     wall = time.perf_counter() - wall0
     meta = {"users": study.users, "seed": study.seed, "strategies": list(study.strategies),
-            "quick": study.quick, "dt": study.dt}
+            "quick": study.quick, "dt": study.dt, "task": study.task,
+            "holes_approach": [[round(c, 4) for c in h.approach] for h in task.holes]}
     analysis, doc = write_outputs(args.out, res.executions, meta)
-    figures = [] if args.no_figures else write_figures(res.executions, doc["median_user"], args.out)
+    figures = [] if args.no_figures else write_figures(res.executions, doc["median_user"],
+                                                       args.out, doc)
     # workers' CPU time, plus this process's (which includes the work when jobs == 1)
     cpu = (time.process_time() - cpu0) + (res.cpu_time if executor.name != "in-process"
                                           else 0.0)
@@ -151,7 +162,7 @@ def _replicate(args: argparse.Namespace) -> int:
         for k, seed in enumerate(seeds):
             study = StudyConfig.make(quick=args.quick, users=args.users, seed=seed,
                                      strategies=tuple(args.strategies),
-                                     config_path=args.config)
+                                     config_path=args.config, task=args.task)
             n = study.users * len(study.strategies)
             print(f"mmctl study: population {k + 1}/{len(seeds)} (seed {seed}): "
                   f"{study.users} users x {len(study.strategies)} approaches on "
@@ -159,7 +170,7 @@ def _replicate(args: argparse.Namespace) -> int:
             res = run_study(study, progress=_Bar(n), executor=executor)
             cpu += res.cpu_time
             meta = {"users": study.users, "seed": seed, "strategies": list(study.strategies),
-                    "quick": study.quick, "dt": study.dt}
+                    "quick": study.quick, "dt": study.dt, "task": study.task}
             analyses[seed], _doc = write_outputs(args.out / f"seed-{seed}", res.executions, meta)
     finally:
         executor.close()
@@ -178,4 +189,142 @@ def _replicate(args: argparse.Namespace) -> int:
     print(f"{len(seeds)} studies in {wall:.1f} s wall, {cpu:.1f} s CPU; wrote "
           f"{args.out / 'replication.md'}, {args.out / 'replication.json'} and "
           f"{args.out}/seed-*/")
+    return 0
+
+
+# --- analyses over many studies: `mmctl study sweep`, `mmctl study sensitivity` --------
+
+def _add_common(q: argparse.ArgumentParser, out: str, users_help: str) -> None:
+    q.add_argument("--users", type=int, default=None, help=users_help)
+    q.add_argument("--seed", type=int, default=0, help="population seed (default 0)")
+    q.add_argument("--out", type=Path, default=Path(out), help=f"output directory "
+                   f"(default ./{out})")
+    q.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                   help="worker processes (default: CPU count)")
+    q.add_argument("--cluster", metavar="ADDRESS", default=None,
+                   help="run the executions on a Dask distributed scheduler (see mmctl study)")
+    q.add_argument("--config", default=None, help="control configuration YAML "
+                   "(default: built-in defaults)")
+    q.add_argument("--no-figures", action="store_true", help="skip the PNG figure")
+
+
+def _add_analyses(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="analysis", metavar="ANALYSIS",
+                           help="instead of one study: sweep or sensitivity")
+    sw = sub.add_parser(
+        "sweep", help="min-energy over the base's weight in M and the null-space projector",
+        description="The inertia-weighting sweep (mmctl.study.sweep): the min-energy IDK "
+        "with the base's inertia scaled by s in its weighting and the dynamically "
+        "consistent or the ordinary null-space projector, plus the coupled-inertia "
+        "ablation and the locomotion approach, for the same users; median E and x_f per "
+        "setting. Writes sweep.csv and sweep.png.")
+    _add_common(sw, "sweep-out", "number of simulated users (default 27; 3 with --quick)")
+    sw.add_argument("--quick", action="store_true", help="the short two-hole task")
+    sw.add_argument("--scales", type=float, nargs="+", default=None, metavar="S",
+                    help="base weight scales (default: 10^(k/4), k = -4..4: 0.1 .. 10)")
+    sw.add_argument("--projectors", nargs="+", choices=("dynamic", "euclidean"),
+                    default=["dynamic", "euclidean"], help="null-space projectors")
+    sw.add_argument("--no-coupled", action="store_true",
+                    help="skip the coupled-inertia ablation")
+    sw.set_defaults(_run=run_sweep)
+    se = sub.add_parser(
+        "sensitivity", help="Morris screening of the paper's claims (SALib)",
+        description="Morris screening (mmctl.study.sensitivity): a small study per Morris "
+        "point over the population's medians, the plant and the layout; per claim of the "
+        "paper, the factors ranked by mu* and where in each range the claim holds. Writes "
+        "sensitivity.csv, sensitivity.json and sensitivity.png.")
+    _add_common(se, "sensitivity-out", "simulated users per Morris point (default 6)")
+    se.add_argument("--trajectories", type=int, default=None, metavar="R",
+                    help="Morris trajectories (default 4; points = R x (factors + 1))")
+    se.add_argument("--factors", nargs="+", default=None, metavar="NAME",
+                    help="screen only these factors (default: all; names as in "
+                    "sensitivity.csv, e.g. human.stiffness arm.speedj_acceleration)")
+    se.add_argument("--full-task", action="store_true",
+                    help="the full five-hole task per point (default: the quick task)")
+    se.set_defaults(_run=run_sensitivity)
+
+
+def run_sweep(args: argparse.Namespace) -> int:
+    from mmctl.errors import ConfigError
+    from mmctl.study.config import StudyConfig
+    from mmctl.study.executor import make_executor
+    from mmctl.study.sweep import DEFAULT_SCALES, run_sweep, settings, sweep_table, write_sweep
+
+    if args.jobs < 1:
+        raise ConfigError("--jobs", args.jobs, "must be >= 1")
+    study = StudyConfig.make(quick=args.quick, users=args.users, seed=args.seed,
+                             config_path=args.config)
+    grid = settings(tuple(args.scales) if args.scales else DEFAULT_SCALES,
+                    tuple(dict.fromkeys(args.projectors)), not args.no_coupled)
+    n = study.users * (len(grid) + 1)
+    executor = make_executor(args.jobs, args.cluster)
+    print(f"mmctl study sweep: {len(grid)} min-energy settings + locomotion x "
+          f"{study.users} users, seed {study.seed}, on {executor.name}, "
+          f"{'quick task' if study.quick else 'full task'}", file=sys.stderr)
+    wall0 = time.perf_counter()
+    try:
+        res = run_sweep(study, grid, executor, _Bar(n))
+    finally:
+        executor.close()
+    wall = time.perf_counter() - wall0
+    meta = {"users": study.users, "seed": study.seed, "quick": study.quick}
+    paths = write_sweep(args.out, res, meta, figure=not args.no_figures)
+    print(f"\nInertia-weighting sweep, medians over {study.users} users:\n")
+    print(sweep_table(res.rows))
+    dom = [r.setting.label for r in res.rows if r.dominates and r.setting is not None]
+    print("\n" + (f"dominating the paper's point on both median E and x_f: {', '.join(dom)}"
+                  if dom else "no setting has both a lower median E and a lower median x_f "
+                  "than the paper's point"))
+    print(f"\n{n} executions in {wall:.1f} s wall, {res.cpu_time:.1f} s CPU in the "
+          f"executions ({res.cycles} control cycles); wrote "
+          + ", ".join(str(p) for p in paths))
+    return 0
+
+
+def run_sensitivity(args: argparse.Namespace) -> int:
+    from mmctl.errors import ConfigError
+    from mmctl.study.config import StudyConfig
+    from mmctl.study.executor import make_executor
+    from mmctl.study.sensitivity import (
+        FACTORS,
+        TRAJECTORIES,
+        USERS,
+        analyse,
+        check_factors,
+        factor_by_name,
+        run_points,
+        sample,
+        sensitivity_table,
+        write_sensitivity,
+    )
+
+    if args.jobs < 1:
+        raise ConfigError("--jobs", args.jobs, "must be >= 1")
+    study = StudyConfig.make(quick=not args.full_task,
+                             users=args.users if args.users is not None else USERS,
+                             seed=args.seed, config_path=args.config)
+    factors = ([factor_by_name(f) for f in args.factors] if args.factors else list(FACTORS))
+    check_factors(study, factors)
+    r = args.trajectories if args.trajectories is not None else TRAJECTORIES
+    x = sample(factors, r, study.seed)
+    n = len(x) * study.users * len(study.strategies)
+    executor = make_executor(args.jobs, args.cluster)
+    print(f"mmctl study sensitivity: {len(factors)} factors, {r} trajectories = {len(x)} "
+          f"points x {study.users} users x {len(study.strategies)} approaches, seed "
+          f"{study.seed}, on {executor.name}", file=sys.stderr)
+    wall0 = time.perf_counter()
+    try:
+        points, cpu = run_points(study, factors, x, executor, _Bar(n))
+    finally:
+        executor.close()
+    wall = time.perf_counter() - wall0
+    doc = analyse(factors, x, points, study.seed)
+    doc.update({"trajectories": r, "users": study.users, "seed": study.seed,
+                "quick": study.quick, "points_n": len(x)})
+    paths = write_sensitivity(args.out, doc, figure=not args.no_figures)
+    print(f"\nMorris screening of the paper's claims ({len(x)} points of {study.users} "
+          f"users; a claim holds where |r| meets r_crit = {doc['r_crit']:.3f}):\n")
+    print(sensitivity_table(doc))
+    print(f"\n{n} executions in {wall:.1f} s wall, {cpu:.1f} s CPU in the executions; "
+          "wrote " + ", ".join(str(p) for p in paths))
     return 0

@@ -243,6 +243,42 @@ class SimConfig:
         doc="the simulated sensor's constant offset fx, fy, fz [N], tx, ty, tz [N m] (what "
         "a tare or `mmctl calibrate tool` removes)",
         why="an offset well inside the Axia80 M20's +-500 N and +-20 N m (mN are caught)")
+    # The simulated base's departure from its commands (sim/wheels.py BaseDynamics; the
+    # fakes' drives and the study's plant alike).  Sources and arguments: docs/study.md,
+    # "The base plant".  0 / 0 / 0 / 0 is the ideal base of before issue 19.
+    base_latency: float = param(
+        0.002, unit="s", ge=0.0, le=0.1,
+        doc="dead time from a wheel velocity command to the drive acting on it. 2 ms: the "
+        "daemon sends the targets at the end of its cycle (0.3-0.6 ms of compute), 4 RPDOs + "
+        "SYNC take ~0.4 ms on a 1 Mbit/s CAN bus (5 frames of 50-90 bits, CiA 301), and a "
+        "CiA 402 drive applies the SYNC-latched target at its next profile cycle (<= 1 ms "
+        "at the 1 kHz interpolation cycle; Elmo servo drives: 2.75 kHz position loop)",
+        why="from none to 50 control periods (a bus that late is broken)")
+    base_velocity_tau: float = param(
+        0.01, unit="s", ge=0.0, le=0.5,
+        doc="time constant of the drives' velocity loop (wheel speed behind the drive's "
+        "ramped demand, first order). 10 ms = a 16 Hz loop: servo drives reach a few "
+        "hundred Hz at an unloaded shaft (Elmo: velocity loop < 350 Hz), but a wheel drive "
+        "carrying a quarter of a ~150 kg base through a gearbox and elastomer rollers is "
+        "tuned below the drivetrain's first resonance, of order 25 Hz "
+        "(sqrt(1e6 N/m / 37 kg) / 2 pi); 0 = the wheels follow the demand exactly",
+        why="from none to a loop so slow (0.3 Hz) no base would be driven with it")
+    base_slip_longitudinal: float = param(
+        0.01, ge=0.0, le=0.5,
+        doc="fraction of the wheels' odometry the base does not achieve along its x axis "
+        "(mecanum roller slip; the encoders do not see it, the world does). 1 %: the "
+        "elastomer rollers' compression under a quarter of ~150 kg (~0.5 mm of a 127 mm "
+        "radius, 0.4 %) plus rolling-contact creep at the small traction of hand-guided "
+        "motion (Carter: (a / 2R) F/N ~ 0.3 % for a 6 mm contact, F/N ~ 0.1), rounded up",
+        why="from none to half the motion lost (a base on ice)")
+    base_slip_lateral: float = param(
+        0.03, ge=0.0, le=0.5,
+        doc="as sim.base_slip_longitudinal along the base's y axis (sideways). 3 %: "
+        "sideways, each wheel pushes along its 45-degree roller axes (sqrt 2 more force "
+        "per newton moved) and the spinning rollers add their bearing and rolling drag, so "
+        "the creep term grows about threefold; mecanum bases are known to strafe short of "
+        "their odometry (gm0 drivetrain guide; far more on carpet than on a hard floor)",
+        why="from none to half the motion lost (a base on ice)")
 
     def validate(self, path: str, source: str | None) -> None:
         import ipaddress

@@ -231,7 +231,16 @@ class Controller:
                               "term pulls the handle there), at "
                               f"{self.p_des_base.round(3).tolist()} m in the base frame")
 
+    def use_strategy(self, name: str, strategy: IdkStrategy) -> None:
+        """Run ``strategy`` as the solver ``name`` (one of :data:`SOLVERS`) from now on
+        (the study's sweep: a variant of the min-energy solve)."""
+        if name not in SOLVERS:
+            raise ValueError(f"unknown solver {name!r}; one of {', '.join(SOLVERS)}")
+        self.strategies[name] = strategy
+        self._solvers = tuple(self.strategies[n] for n in SOLVERS)
+
     # --- state -----------------------------------------------------------------
+
     def initial_state(self, mode: Mode | str | None = None) -> ControllerState:
         """At rest, in ``mode`` (default ``idk.strategy``), switch in ``idk.switch.initial``."""
         m = _parse(Mode, mode if mode is not None else self.cfg.idk.strategy)

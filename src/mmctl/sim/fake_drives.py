@@ -13,8 +13,12 @@ the CiA 402 state machine on controlword writes (:func:`cia402.next_state`), mod
 operation (only 3 = profile velocity is accepted), RPDOs applied on the next SYNC,
 TPDOs sent on SYNC (types 1-240) or on change (254/255), using whatever PDO mapping the
 master wrote (reloaded on NMT start); EMCY on faults and watchdog events.  The wheels
-are simulated by :class:`~mmctl.sim.wheels.WheelPlant`: velocity ramps toward the target at the profile
-acceleration 0x6083/0x6084, positions integrate the velocity.
+are simulated by :class:`~mmctl.sim.wheels.WheelPlant`: the demand ramps toward the
+target at the profile acceleration 0x6083/0x6084, with the base's command latency,
+velocity loop and mecanum slip of the ``sim:`` section
+(:class:`~mmctl.sim.wheels.BaseDynamics`); positions integrate the velocity.  :meth:`FakeDrives.pose` is what the wheels' encoders integrate
+to (the master's odometry should agree), :meth:`FakeDrives.world_state` where the base
+actually is (slip included).
 
 Every way a drive stops is the one its objects select, as on a device:
 
@@ -61,7 +65,8 @@ from numpy.typing import NDArray
 from mmctl.config import Config
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig
-from mmctl.sim.wheels import SUBSTEP, WheelPlant
+from mmctl.config.runtime import SimConfig
+from mmctl.sim.wheels import SUBSTEP, BaseDynamics, WheelPlant
 from mmctl.transports.base import cia402 as ds
 from mmctl.transports.base.protocol import WHEEL_NAMES, DriveStatus
 
@@ -137,17 +142,18 @@ class FakeDrives:
     """The four simulated drives (parent-side handle; see the module doc).
 
     cfg: a :class:`~mmctl.config.Config` (or its ``base:`` section, then ``limits``
-    gives the acceleration; defaults otherwise).  The drives sit on python-can's
-    ``virtual`` bus, channel ``base.canopen.channel``, whatever the interface the master
-    uses to get there (``socketcand``: :mod:`mmctl.sim.socketcand` serves the channel).
-    No I/O before :meth:`start`.
+    gives the acceleration and ``sim`` the base's dynamics; defaults otherwise).  The
+    drives sit on python-can's ``virtual`` bus, channel ``base.canopen.channel``,
+    whatever the interface the master uses to get there (``socketcand``:
+    :mod:`mmctl.sim.socketcand` serves the channel).  No I/O before :meth:`start`.
     """
 
-    def __init__(self, cfg: Config | BaseConfig, limits: LimitsConfig | None = None) -> None:
+    def __init__(self, cfg: Config | BaseConfig, limits: LimitsConfig | None = None,
+                 sim: SimConfig | None = None) -> None:
         if isinstance(cfg, Config):
-            base, limits = cfg.base, cfg.limits
+            base, limits, sim = cfg.base, cfg.limits, cfg.sim
         else:
-            base, limits = cfg, limits or LimitsConfig()
+            base, limits, sim = cfg, limits or LimitsConfig(), sim or SimConfig()
         self.cfg = base
         self.node_ids: tuple[int, ...] = tuple(base.canopen.node_ids)
         self._counts_per_rad = base.canopen.counts_per_rev / (2.0 * math.pi)
@@ -158,7 +164,8 @@ class FakeDrives:
         self._default_accel = int(accel.default or 1) / self._counts_per_rad  # [rad/s^2]
         self._default_decel = int(decel.default or 1) / self._counts_per_rad
         # no plant-side watchdog: the drives stop by their objects (0x1016, 0x1400:05)
-        self.plant = WheelPlant(base.mecanum, self._default_accel, None)
+        self.plant = WheelPlant(base.mecanum, self._default_accel, None,
+                                dynamics=BaseDynamics.from_config(sim))
         self.plant.decel[:] = self._default_decel
         self.plant.coasting[:] = True  # power stages off (SWITCH ON DISABLED)
         self._lock = self.plant.lock
@@ -283,10 +290,19 @@ class FakeDrives:
             return self.plant.theta.copy()
 
     def pose(self) -> tuple[float, float, float]:
-        """The simulated base pose (x, y [m], yaw [rad]) in the world frame, now."""
+        """The base pose (x, y [m], yaw [rad]) the wheels' encoders integrate to, now:
+        what the master's odometry should find (no slip; :meth:`world_state` has it)."""
         with self._lock:
             self._service(time.monotonic())
-            return self.plant.get_pose(time.monotonic())
+            return self.plant.get_odometry_pose(time.monotonic())
+
+    def world_state(self) -> tuple[tuple[float, float, float], Vec]:
+        """Where the base actually is and how it moves, now: pose (x, y [m], yaw [rad],
+        world frame) and twist (3,) (v_x, v_y [m/s], ω_z [rad/s], base frame), mecanum
+        slip included (what the person's hand moves with)."""
+        with self._lock:
+            self._service(time.monotonic())
+            return self.plant.get_pose(time.monotonic()), self.plant.twist()
 
     @property
     def sync_count(self) -> int:
@@ -559,7 +575,7 @@ class FakeDrives:
         w = d.wheel
         self.plant.accel[w] = self._default_accel
         self.plant.decel[w] = self._default_decel
-        self.plant.target[w] = 0.0
+        self.plant.drop_commands(w)  # target 0, nothing in flight
         if self._network is not None:
             node.rpdo.read()  # the default mappings: every PDO invalid
             node.tpdo.read()

@@ -6,7 +6,8 @@ bridge in a thread; :attr:`FakeSerialBridge.port` is the slave's path (/dev/pts/
 the real :class:`~mmctl.transports.base.serial_base.SerialBase` (or ``mmctl probe base
 --transport serial --port``).  The bridge answers every ENABLE / DISABLE / WHEEL_CMD /
 HEARTBEAT with a STATE, sends a STATE every ``report_period`` when idle, and drives a
-:class:`~mmctl.sim.wheels.WheelPlant` (acceleration limit, command watchdog).
+:class:`~mmctl.sim.wheels.WheelPlant` (acceleration limit, command watchdog; the base's
+latency, velocity loop and slip of the ``sim:`` section).
 
 Fault injection (:meth:`FakeSerialBridge.inject`): ``"crc"`` (bad CRC), ``"truncate"``
 (frame cut short), ``"out_of_sequence"`` (an old sequence number carrying bogus
@@ -34,7 +35,8 @@ from numpy.typing import NDArray
 from mmctl.config import Config
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig
-from mmctl.sim.wheels import WheelPlant
+from mmctl.config.runtime import SimConfig
+from mmctl.sim.wheels import BaseDynamics, WheelPlant
 from mmctl.transports.base import serial_protocol as sp
 
 if TYPE_CHECKING:
@@ -48,22 +50,24 @@ INJECTIONS = ("crc", "truncate", "out_of_sequence", "garbage")
 class FakeSerialBridge:
     """The simulated bridge (parent-side handle).
 
-    cfg: a Config (or its ``base:`` section plus ``limits``); report_period: idle STATE
-    period [s]; seed: for the garbage bytes.  No I/O before :meth:`start`.
+    cfg: a Config (or its ``base:`` section plus ``limits`` and ``sim``, the base's
+    dynamics); report_period: idle STATE period [s]; seed: for the garbage bytes.  No
+    I/O before :meth:`start`.
     """
 
     def __init__(
         self, cfg: Config | BaseConfig, limits: LimitsConfig | None = None,
-        report_period: float = 0.02, seed: int = 0,
+        report_period: float = 0.02, seed: int = 0, sim: SimConfig | None = None,
     ) -> None:
         if isinstance(cfg, Config):
-            base, limits = cfg.base, cfg.limits
+            base, limits, sim = cfg.base, cfg.limits, cfg.sim
         else:
-            base, limits = cfg, limits or LimitsConfig()
+            base, limits, sim = cfg, limits or LimitsConfig(), sim or SimConfig()
         self.cfg = base
         self.report_period = report_period
         self.plant = WheelPlant(base.mecanum, limits.base_linear_acceleration
-                                / base.mecanum.wheel_radius, base.command_watchdog)
+                                / base.mecanum.wheel_radius, base.command_watchdog,
+                                dynamics=BaseDynamics.from_config(sim))
         self._lock = threading.RLock()
         self._rng = random.Random(seed)
         self._decoder = sp.FrameDecoder(resync_types=frozenset({sp.MsgType.ENABLE}))
@@ -133,8 +137,15 @@ class FakeSerialBridge:
     # -- what tests and the simulator read ---------------------------------------------
 
     def pose(self) -> tuple[float, float, float]:
-        """The simulated base pose (x, y [m], yaw [rad]) now."""
-        return self.plant.get_pose(time.monotonic())
+        """The base pose (x, y [m], yaw [rad]) the wheels' encoders integrate to, now
+        (what the master's odometry should find; :meth:`world_state` has the slip)."""
+        return self.plant.get_odometry_pose(time.monotonic())
+
+    def world_state(self) -> tuple[tuple[float, float, float], NDArray[np.float64]]:
+        """Where the base actually is, now: pose (x, y [m], yaw [rad], world frame) and
+        twist (3,) (v_x, v_y [m/s], ω_z [rad/s], base frame), mecanum slip included."""
+        with self.plant.lock:
+            return self.plant.get_pose(time.monotonic()), self.plant.twist()
 
     def wheel_velocities(self) -> NDArray[np.float64]:
         """Actual simulated wheel speeds (4,) [rad/s] now."""

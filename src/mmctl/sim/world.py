@@ -156,11 +156,8 @@ class SimWorld:
         from mmctl.sim.fake_ur import FakeURController
 
         cfg = self.cfg
-        from mmctl.control.mecanum import odometry_matrix
-
         self.model = RobotModel(cfg.robot)
         self._r_flange_sensor = sensor_rotation(cfg.robot)
-        self._odometry = odometry_matrix(cfg.base.mecanum)
         self._handle_sensor = HandleSensor(cfg)
         self._ur = FakeURController(cfg.arm.host, q_init=self.q_init).start()
         self._apply_enabling()
@@ -259,8 +256,7 @@ class SimWorld:
         tool's and the sensor's orientation in the base frame (3, 3) (the tool frame has
         the flange's axes, the sensor's are turned by ``robot.sensor_rotation``)."""
         arm = self.ur.state()
-        x, y, yaw = self.drives.pose()
-        twist = self._odometry @ self.drives.wheel_velocities()
+        (x, y, yaw), twist = self.drives.world_state()  # slip included: where it is
         q = np.concatenate((arm.q, [x, y, yaw]))
         qd = np.concatenate((arm.qd, twist))
         kin = self.model.update(q, inertia=False)
@@ -477,7 +473,7 @@ class SimWorld:
     def _base_truth(self) -> dict[str, Any]:
         if self._drives is None:
             return {}
-        return {"base_pose": [round(float(x), 6) for x in self.drives.pose()],
+        return {"base_pose": [round(float(x), 6) for x in self.drives.world_state()[0]],
                 "wheel_velocities": [round(float(x), 4) for x in self.drives.wheel_velocities()]}
 
     def _write_logs(self, d: Path) -> None:

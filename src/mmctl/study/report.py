@@ -16,6 +16,7 @@ import numpy as np
 from mmctl.study.results import (
     APPROACH_NAMES,
     CSV_COLUMNS,
+    EXTRA_METRICS,
     METRIC_LABELS,
     METRICS,
     PAPER_MEDIANS,
@@ -31,18 +32,28 @@ def strategies_of(execs: Sequence[Execution]) -> list[str]:
     return list(dict.fromkeys(e.strategy for e in execs))
 
 
+def metrics_of(execs: Sequence[Execution]) -> tuple[str, ...]:
+    """The metrics to report: the paper's five, then those of :data:`EXTRA_METRICS`
+    that every execution has (x_f_hold: executions made before the hold have none)."""
+    extra = tuple(m for m in EXTRA_METRICS
+                  if execs and all(math.isfinite(e.metric(m)) for e in execs))
+    return (*METRICS, *extra)
+
+
 def values(execs: Sequence[Execution]) -> dict[str, dict[str, np.ndarray]]:
-    """``values[strategy][metric]``: one value per user, in user order."""
+    """``values[strategy][metric]``: one value per user, in user order, for every
+    metric of :func:`metrics_of`."""
     out: dict[str, dict[str, np.ndarray]] = {}
+    names = metrics_of(execs)
     for s in strategies_of(execs):
         rows = sorted((e for e in execs if e.strategy == s), key=lambda e: e.user)
-        out[s] = {m: np.array([e.metric(m) for e in rows]) for m in METRICS}
+        out[s] = {m: np.array([e.metric(m) for e in rows]) for m in names}
     return out
 
 
 def medians(execs: Sequence[Execution]) -> dict[str, dict[str, float]]:
-    """Median of every metric per strategy."""
-    return {s: {m: float(np.median(v[m])) for m in METRICS} for s, v in values(execs).items()}
+    """Median of every reported metric per strategy."""
+    return {s: {m: float(np.median(x)) for m, x in v.items()} for s, v in values(execs).items()}
 
 
 def median_user(execs: Sequence[Execution]) -> int:
@@ -54,7 +65,7 @@ def median_user(execs: Sequence[Execution]) -> int:
     hits = np.zeros(len(users))
     dist = np.zeros(len(users))
     for per in vals.values():
-        for m in METRICS:
+        for m in METRICS:  # the paper's metrics: the median user of its Figs. 6-7
             x = per[m]
             med = np.median(x)
             iqr = float(np.subtract(*np.percentile(x, [75, 25]))) or 1.0
@@ -72,14 +83,16 @@ def _fmt(x: float) -> str:
 
 
 def median_table(execs: Sequence[Execution]) -> str:
-    """Markdown table: per approach, the simulated median and the paper's."""
+    """Markdown table: per approach, the simulated median and the paper's (— where the
+    paper has none: x_f after the hold)."""
     med = medians(execs)
-    head = "| approach | " + " | ".join(f"{METRIC_LABELS[m]} sim | paper" for m in METRICS) + " |"
-    sep = "|---|" + "---:|---:|" * len(METRICS)
+    names = metrics_of(execs)
+    head = "| approach | " + " | ".join(f"{METRIC_LABELS[m]} sim | paper" for m in names) + " |"
+    sep = "|---|" + "---:|---:|" * len(names)
     lines = [head, sep]
     for s, row in med.items():
         paper = PAPER_MEDIANS.get(s, {})
-        cells = [f"{_fmt(row[m])} | {_fmt(paper[m]) if m in paper else '—'}" for m in METRICS]
+        cells = [f"{_fmt(row[m])} | {_fmt(paper[m]) if m in paper else '—'}" for m in names]
         lines.append(f"| {s} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -204,7 +217,7 @@ def write_outputs(
 ) -> tuple[list[MetricAnalysis], dict[str, Any]]:
     """Write results.csv and summary.json into ``out``; return the analysis and summary."""
     out.mkdir(parents=True, exist_ok=True)
-    analysis = analyse(cast(Any, values(execs)), METRICS)
+    analysis = analyse(cast(Any, values(execs)), metrics_of(execs))
     (out / "results.csv").write_text(results_csv(execs), encoding="utf-8")
     doc = summary(execs, analysis, meta)
     (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")

@@ -3,6 +3,7 @@ paper's reference numbers."""
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -10,9 +11,14 @@ from numpy.typing import NDArray
 
 #: The five metrics, in the paper's column order.
 METRICS: tuple[str, ...] = ("E", "F_h", "v", "x_f", "T_f")
+#: Beyond the paper's: x_f after the end-of-trial hold (issue 19).
+EXTRA_METRICS: tuple[str, ...] = ("x_f_hold",)
+#: What the tables, results.csv and summary.json report: the paper's five, then ours.
+REPORT_METRICS: tuple[str, ...] = (*METRICS, *EXTRA_METRICS)
 #: Column headers as the paper prints them.
 METRIC_LABELS: dict[str, str] = {
     "E": "Ē [J]", "F_h": "F̄_h [N]", "v": "v̄ [m/s]", "x_f": "x_f [m]", "T_f": "T_f [s]",
+    "x_f_hold": "x_f hold [m]",
 }
 #: How each approach is named in the paper's tables.
 APPROACH_NAMES: dict[str, str] = {
@@ -69,11 +75,15 @@ class Execution(NamedTuple):
     """One user with one approach.
 
     E [J], F_h [N], v [m/s], x_f [m], T_f [s]: the paper's metrics; E_base [J]: mean
-    kinetic energy of the base alone; F_max [N]: peak ||f_h||; switches: switch
-    requests the user made (every approach receives them; only the switch strategy
-    acts on them); completed: the user finished
-    the last insertion before the time limit (otherwise T_f is the limit); faults:
-    cycles on which the controller reported a fault.
+    kinetic energy of the base alone; F_max [N]: peak ||f_h||; switches: presses
+    of the handle's mode button (only the switch condition has one: 0 otherwise);
+    completed: the user finished
+    the last insertion before the time limit (otherwise T_f is the limit); x_f_hold
+    [m]: x_f at the end of the end-of-trial hold (the peg kept in the last hole
+    ``hold_time`` after T_f; = x_f when unfinished); faults:
+    cycles on which the controller reported a fault; limited: fraction of the samples
+    k = 1..N on which a limit bound the controller's command (``StepOutputs.limit``
+    not empty: any of :data:`mmctl.control.limits.LIMIT_NAMES`; the sweep reports it).
     """
 
     user: int
@@ -89,6 +99,8 @@ class Execution(NamedTuple):
     completed: bool
     faults: int
     series: Series
+    limited: float = 0.0
+    x_f_hold: float = math.nan
 
     def metric(self, name: str) -> float:
         """One of :data:`METRICS` by name."""
@@ -97,11 +109,12 @@ class Execution(NamedTuple):
 
 #: results.csv columns, in order.
 CSV_COLUMNS: tuple[str, ...] = (
-    "user", "strategy", *METRICS, "E_base", "F_max", "switches", "completed", "faults",
+    "user", "strategy", *REPORT_METRICS, "E_base", "F_max", "switches", "completed",
+    "faults",
 )
 
 
 def csv_row(e: Execution) -> list[str]:
     """The execution as results.csv fields (floats with 10 significant digits)."""
-    fl = [format(e.metric(m), ".10g") for m in (*METRICS, "E_base", "F_max")]
+    fl = [format(e.metric(m), ".10g") for m in (*REPORT_METRICS, "E_base", "F_max")]
     return [str(e.user), e.strategy, *fl, str(e.switches), str(int(e.completed)), str(e.faults)]

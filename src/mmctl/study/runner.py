@@ -8,8 +8,10 @@ First, hands off the handle, the tare the operator runs before enabling
 
 1. the plant's actual ``q``, ``q̇`` give the handle's world position and velocity
    (Pinocchio FK and Jacobian of :class:`mmctl.model.RobotModel`);
-2. the simulated human (:mod:`mmctl.sim.human`) returns a world-frame force and maybe
-   a switch request; the request reaches the controller only in the switch approach;
+2. the simulated human (:mod:`mmctl.sim.human`) returns a world-frame force (motor
+   noise included, from the user's own noise stream: the same in every approach) and
+   maybe a switch request: the handle has a mode button only in the switch approach,
+   so only there does the person press it (and pause for the press);
 3. the force becomes what the wrist sensor measures (:class:`mmctl.sim.handle.HandleSensor`:
    sensor frame, its moment, the handle's weight, the sensor's bias) and, with the
    arm's joints and the base's odometry, goes into the cycle: the robot's wrench
@@ -21,7 +23,9 @@ Sample k contributes E_K(kT) (the controller's *measured* energy: actual velocit
 ||f_h(kT)|| (the force the person applies) and ||v(kT)|| (actual end-effector linear speed); the metrics use
 k = 1..N with ``N T = T_f``, the first cycle at which the human has finished the last
 insertion.  ``x_f = ||p(T_f) - p_des||`` with ``p`` the handle position relative to
-the base (FK of the arm joints) and ``p_des = FK(q_des)``.
+the base (FK of the arm joints) and ``p_des = FK(q_des)``.  Then the person holds the
+peg in the last hole for the hold time while the robot runs on: ``x_f_hold`` is the
+same distance at the end of the hold (the metrics' samples stop at T_f).
 
 Executions are independent and deterministic, so a study's results do not depend on
 how many worker processes ran them.
@@ -32,22 +36,28 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
+from mmctl.config import Config
 from mmctl.config.control import Mode
 from mmctl.control.cycle import CycleChain, Readings
 from mmctl.control.metrics import trial_metrics
+from mmctl.errors import ConfigError
 from mmctl.model import RobotModel
 from mmctl.model.planar import base_to_world, rot_z
 from mmctl.sim.handle import HandleSensor
 from mmctl.sim.human import (
     HandleObservation,
     HumanAction,
+    HumanParams,
+    Phase,
     SimulatedHuman,
     Task,
+    noise_seed,
     peg_in_hole_task,
+    wall_task,
 )
 from mmctl.sim.plant import Plant
 from mmctl.study.config import StudyConfig
@@ -59,6 +69,21 @@ from mmctl.types import ArmState, Odometry, Wrench
 Progress = Callable[[int, str], None]
 #: Called every cycle with what the human perceived and did (tests, debugging).
 Observer = Callable[[HandleObservation, HumanAction], None]
+
+
+class Variant(Protocol):
+    """A changed setting of one execution (:mod:`mmctl.study.sweep`,
+    :mod:`mmctl.study.sensitivity`): picklable (it travels with the job to the workers);
+    the plain study has none."""
+
+    def config(self, cfg: Config) -> Config:
+        """The control (and plant) configuration to use instead of ``cfg``."""
+
+    def chain(self, cfg: Config) -> CycleChain:
+        """The cycle chain of ``cfg`` (e.g. with another IDK solver installed)."""
+
+    def user(self, seed: int, index: int) -> HumanParams:
+        """User ``index`` of the population of ``seed``."""
 
 
 class StudyResult(NamedTuple):
@@ -77,29 +102,59 @@ def start_configuration(cfg: object) -> np.ndarray:
     return np.concatenate((np.asarray(robot.q_des, dtype=float), np.zeros(3)))
 
 
-def study_task(model: RobotModel, q0: np.ndarray, holes: tuple[tuple[float, float], ...]) -> Task:
-    """The peg-in-hole layout around the handle at ``q0``: holes in the plane through
-    the handle orthogonal to the peg (the tool z axis), offsets along the base heading."""
+def study_task(model: RobotModel, q0: np.ndarray, study: StudyConfig) -> Task:
+    """The peg-in-hole task of ``study`` around the handle at ``q0`` (9,).
+
+    wall: the seed's layout (:meth:`StudyConfig.layout`) on a vertical wall ahead of
+    the peg (the tool z axis, which must be horizontal: ConfigError naming the start
+    pose otherwise), one hole at the start handle's height; board: holes in the plane
+    through the handle orthogonal to the peg, ``study.holes`` offsets along the base
+    heading."""
     kin = model.update(q0, inertia=False)
     axis = rot_z(q0[8]) @ kin.R_base[:, 2]
     mount = model.cfg.arm_mount
-    return peg_in_hole_task(kin.p, axis, float(q0[8]), holes,
-                            arm_mount_xy=(float(mount[0]), float(mount[1])))
+    mount_xy = (float(mount[0]), float(mount[1]))
+    if study.task == "board":
+        return peg_in_hole_task(kin.p, axis, float(q0[8]), study.holes, arm_mount_xy=mount_xy)
+    fam = study.wall
+    try:
+        return wall_task(kin.p, axis, study.layout(float(kin.p[2])), fam.standoff, fam.depth,
+                         arm_mount_xy=mount_xy)
+    except ValueError as exc:
+        key = "robot.q_init" if model.cfg.q_init is not None else "robot.q_des"
+        raise ConfigError(key, tuple(round(float(v), 4) for v in q0[:6]),
+                          f"{exc}; use a pose with the tool z axis horizontal or "
+                          "--task board") from None
+
+
+def task_of(study: StudyConfig) -> Task:
+    """The task every execution of ``study`` runs (world frame; the robot at its start
+    pose, the first approach's configuration)."""
+    cfg = study.control_config(study.strategies[0])
+    q0 = start_configuration(cfg)
+    return study_task(RobotModel(cfg.robot), q0, study)
 
 
 def run_execution(
-    study: StudyConfig, user: int, strategy: str, observe: Observer | None = None
+    study: StudyConfig, user: int, strategy: str, observe: Observer | None = None,
+    variant: Variant | None = None,
 ) -> tuple[Execution, float, int]:
-    """One user with one approach; returns the execution, its CPU time [s] and cycles
-    (the tare's included)."""
+    """One user with one approach (with ``variant``'s changes); returns the execution,
+    its CPU time [s] and cycles (the tare's included)."""
     cpu0 = time.process_time()
     cfg = study.control_config(strategy)
-    chain = CycleChain(cfg)
+    if variant is not None:
+        cfg = variant.config(cfg)
+    chain = CycleChain(cfg) if variant is None else variant.chain(cfg)
     model = chain.model
     q0 = start_configuration(cfg)
     plant = Plant(cfg, q0)
     sensor = HandleSensor(cfg)
-    human = SimulatedHuman(draw_user(study.seed, user), study_task(model, q0, study.holes))
+    person = draw_user(study.seed, user) if variant is None else variant.user(study.seed, user)
+    # the same noise stream for the user in every approach; a mode button only in the
+    # switch condition (the paper's other conditions offer no switching)
+    human = SimulatedHuman(person, study_task(model, q0, study), noise_seed=noise_seed(
+        study.seed, user), button=strategy == "switch")
     p_des = model.update(np.concatenate((np.asarray(cfg.robot.q_des), np.zeros(3))),
                          inertia=False).p_base
     dt = chain.dt
@@ -114,16 +169,22 @@ def run_execution(
         tare_cycles += 1
     t0 = clock.t
     n_max = int(study.t_max / dt) + 1
-    energy = np.zeros(n_max)
-    energy_base = np.zeros(n_max)
-    force = np.zeros(n_max)
-    speed = np.zeros(n_max)
-    deviation = np.zeros(n_max)
-    loco = np.zeros(n_max, dtype=np.int8)
+    # after T_f the end-of-trial hold: the person keeps the peg in, the robot runs on
+    n_all = n_max + math.ceil(person.hold_time / dt) + 2
+    energy = np.zeros(n_all)
+    energy_base = np.zeros(n_all)
+    force = np.zeros(n_all)
+    speed = np.zeros(n_all)
+    deviation = np.zeros(n_all)
+    loco = np.zeros(n_all, dtype=np.int8)
+    limited = np.zeros(n_all, dtype=bool)
     switches = faults = 0
-    k_done = n_max - 1
-    p_final = p_des
-    for k in range(n_max):
+    k_done = k_last = n_max - 1
+    p_final = p_hold = p_des
+    finished = False
+    for k in range(n_all):
+        if not finished and k >= n_max:  # the time limit, the task unfinished
+            break
         ps = plant.state()
         q, qd = ps.q, ps.qd
         kin = model.update(q, inertia=False)
@@ -148,14 +209,20 @@ def run_execution(
         ctl_state = state.controller
         loco[k] = 1 if ctl_state.mode is Mode.SWITCH and ctl_state.target == "locomotion" else 0
         faults += 1 if out.fault is not None else 0
-        if act.done:
+        limited[k] = out.out is not None and out.out.limit != ""
+        k_last = k
+        if act.done and not finished:  # T_f: the metrics end here
+            finished = True
             k_done = k
             p_final = kin.p_base
+        if act.phase is Phase.DONE:  # the end of the hold
             break
         plant.step(out.qd_arm, out.twist, dt)
     completed = human.finish_time is not None
     if not completed:
         p_final = model.update(plant.state().q, inertia=False).p_base
+    p_hold = kin.p_base if completed else p_final
+    dh = p_hold - p_des
     n = max(k_done, 1)
     sl = slice(1, n + 1)
     m = trial_metrics(dt, energy[sl], force[sl], speed[sl], p_final, p_des)
@@ -171,8 +238,9 @@ def run_execution(
     )
     ex = Execution(user, strategy, m.E_mean, m.F_mean, m.v_mean, m.x_f, m.T_f,
                    float(energy_base[sl].mean()), float(force[sl].max()), switches, completed,
-                   faults, series)
-    return ex, time.process_time() - cpu0, tare_cycles + k_done + 1
+                   faults, series, float(limited[sl].mean()),
+                   x_f_hold=math.sqrt(float(dh @ dh)))
+    return ex, time.process_time() - cpu0, tare_cycles + k_last + 1
 
 
 _Z3 = np.zeros(3)
@@ -181,9 +249,10 @@ _NO_FORCE = np.zeros(3)
 
 
 class _Clock:
-    """The study's simulated time and the devices' readings at it: the plant's joints
-    and wheels as the arm and the odometry report them, and the sensor's reading of the
-    person's force (bias and handle weight included), one fresh sample per cycle."""
+    """The study's simulated time and the devices' readings at it: the arm's joints as
+    the arm reports them, the base as its wheel encoders report it (the plant's
+    odometry: no slip), and the sensor's reading of the person's force (bias and handle
+    weight included) in the sensor's actual orientation, one fresh sample per cycle."""
 
     def __init__(self, plant: Plant, sensor: HandleSensor, model: RobotModel, dt: float):
         self.plant, self.sensor, self.model, self.dt = plant, sensor, model, dt
@@ -192,17 +261,24 @@ class _Clock:
 
     def readings(self, force_world: np.ndarray, active: bool, q: np.ndarray | None = None,
                  qd: np.ndarray | None = None) -> Readings:
-        """The readings of the cycle that starts now, then the clock moves one period."""
+        """The readings of the cycle that starts now, then the clock moves one period.
+
+        ``q``, ``qd``: the plant's actual state now (default: :meth:`Plant.state`); its
+        arm part is what the arm reports, its base yaw turns the person's world force
+        into the sensor's frame.  The base's pose and twist come from
+        :meth:`Plant.odometry`, as the daemon's come from the wheel encoders."""
         if q is None or qd is None:
             q, qd = self.plant.state()
+        odo = self.plant.odometry()
         self.t += self.dt
         self.sequence += 1
         r_sensor = self.model.fk_base(q, "sensor").rotation
         w = self.sensor.measure(force_world, float(q[8]), r_sensor)
         t = self.t
+        (x, y, yaw), (vx, vy, wz) = odo.pose, odo.twist
         return Readings(ArmState(q[:6], qd[:6], t, 2, 1),
                         Wrench(w[:3], w[3:], t, self.sequence),
-                        Odometry(q[6], q[7], q[8], qd[6], qd[7], qd[8], t), self.dt, active)
+                        Odometry(x, y, yaw, vx, vy, wz, t), self.dt, active)
 
 
 def _work(job: tuple[StudyConfig, int, str]) -> tuple[Execution, float, int]:

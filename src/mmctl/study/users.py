@@ -3,11 +3,14 @@
 User ``i`` of seed ``s`` is drawn from its own generator
 ``numpy.random.default_rng(SeedSequence([s, i]))``, so a user is the same whatever
 the number of users or worker processes.  The distributions (medians, spreads and
-clipping ranges) are in :data:`POPULATION`; ``docs/study.md`` tabulates them.
+clipping ranges) are in :data:`POPULATION`; ``docs/study.md`` tabulates them.  A
+user's motor noise comes from a generator of its own,
+:func:`mmctl.sim.human.noise_seed` ``(seed, index)``: the same in every approach.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,17 +54,31 @@ POPULATION: dict[str, Draw] = {
     "comfort_reach": Draw("uniform", 0.90, 0.10, 0.80, 1.00),  # m
     "near_distance": Draw("uniform", 0.25, 0.07, 0.18, 0.32),  # m
     "decision_delay": Draw("lognormal", 0.60, 0.30, 0.30, 1.50),  # s
+    # (issue 19; drawn after the others, so earlier users keep their values)
+    # force CV: median 4 %, sigma_log 0.6 = sqrt(ln(1 + (3.1 / 4.3)^2)) from the
+    # 4.1-4.5 % +- 3.1 % of Baweja et al. 2009 (Exp Brain Res 197:35)
+    "force_cv": Draw("lognormal", 0.04, 0.60, 0.01, 0.15),  # 1
+    # button press: the keystroke-level model's K, 0.20 s (average skilled typist) to
+    # 0.28 s (average non-secretary typist) (Card, Moran & Newell 1980)
+    "press_time": Draw("uniform", 0.24, 0.04, 0.20, 0.28),  # s
 }
 
 #: Insertion speed as a fraction of the reach speed; f_max - f_comfort [N].
 INSERTION_RATIO = 0.32
 FORCE_HEADROOM = 30.0
+#: The end-of-trial hold [s], the same for everyone (the protocol's instruction): three
+#: time constants of the paper's null-space gain G = 1 s^-1.
+HOLD_TIME = 3.0
 
 
-def draw_user(seed: int, index: int) -> HumanParams:
-    """User ``index`` (0-based) of the population of ``seed``."""
+def draw_user(seed: int, index: int,
+              population: Mapping[str, Draw] | None = None) -> HumanParams:
+    """User ``index`` (0-based) of the population of ``seed``; ``population``: other
+    distributions with :data:`POPULATION`'s keys in its order (the sensitivity
+    analysis moves their medians), default :data:`POPULATION`."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
-    v = {name: d.sample(rng) for name, d in POPULATION.items()}
+    pop = POPULATION if population is None else population
+    v = {name: d.sample(rng) for name, d in pop.items()}
     return HumanParams(
         stiffness=v["stiffness"],
         damping=v["damping"],
@@ -74,6 +91,9 @@ def draw_user(seed: int, index: int) -> HumanParams:
         comfort_reach=v["comfort_reach"],
         near_distance=v["near_distance"],
         decision_delay=v["decision_delay"],
+        hold_time=HOLD_TIME,
+        press_time=v["press_time"],
+        force_cv=v["force_cv"],
     )
 
 

@@ -1,0 +1,332 @@
+"""The inertia-weighting sweep (`mmctl study sweep`; the paper's future work: "task-
+dependent tuning of inertia-based weights").
+
+The min-energy IDK solves the task with the whole-body inertia as the metric,
+``qdot = J_M# v_d + P z`` with ``J_M# = M^-1 J^T (J M^-1 J^T)^-1``, ``M = blockdiag(M_a,
+M_b)`` and M_b = diag(115 kg, 115 kg, I_bz).  The sweep changes, in the **weighting
+only**, the base's own inertia to ``s M_b`` (``s`` = ``base_scale``; 1 = the paper;
+s < 1 makes the base cheaper: it moves more, s > 1 dearer: the arm does more), and the
+null-space projector ``P``:
+
+* ``dynamic`` -- the paper's dynamically consistent ``I - J_M# J`` (the solution is
+  the M-closest point to ``z`` on the task manifold);
+* ``euclidean`` -- the ordinary ``I - J# J`` with the Moore-Penrose ``J#`` (what the
+  locomotion approach projects with), ``qdot = J_M# v_d + (I - J# J) z``;
+
+and, as an ablation, the coupled whole-body inertia (``robot.full_inertia``: the
+arm-base coupling the paper neglects in its eq. 11) with the base's own part scaled the
+same way.  The *measured* energy E_K (the metric Ē) always uses the true block-diagonal
+M of the paper's eq. 10: only the controller's weighting changes.
+
+Every setting runs the same users through the study's executions
+(:func:`mmctl.study.runner.run_execution` with a :class:`Setting` as its variant) on the
+study's executor, so for a given seed the numbers do not depend on ``--jobs``.  The
+locomotion approach runs alongside as the reference point.  At ``base_scale`` 1 with
+the dynamic projector and no coupling the solver computes exactly what the plain
+min-energy strategy computes (``tests/test_study_sweep.py`` compares the executions).
+
+Outputs: ``sweep.csv`` (one row per setting: medians over the users, the
+limit-active fraction, whether it dominates the paper's point) and ``sweep.png``
+(:func:`mmctl.study.plots.sweep_curve`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmctl.config import Config
+from mmctl.control.cycle import CycleChain
+from mmctl.control.idk import min_energy, min_energy_block, null_project
+from mmctl.control.limits import Limits
+from mmctl.control.strategies import MinEnergy, Problem, hand_over
+from mmctl.errors import ConfigError
+from mmctl.model.robot import Kinematics
+from mmctl.sim.human import HumanParams
+from mmctl.study.config import StudyConfig
+from mmctl.study.executor import Executor, make_executor
+from mmctl.study.results import Execution
+from mmctl.study.runner import Progress, run_execution
+from mmctl.study.users import draw_user
+
+Vec = NDArray[np.float64]
+
+#: The null-space projectors the sweep compares (see the module docstring).
+PROJECTORS: tuple[str, ...] = ("dynamic", "euclidean")
+
+#: Default base scales: 10^(k/4), k = -4..4 (0.1 .. 10, log-spaced, 1 = the paper).
+DEFAULT_SCALES: tuple[float, ...] = tuple(float(10.0 ** (k / 4.0)) for k in range(-4, 5))
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One point of the sweep, and the :class:`mmctl.study.runner.Variant` that runs it.
+
+    base_scale: factor s > 0 on the base's own inertia M_b in the IDK's weighting
+    (1 = the paper); projector: ``dynamic`` or ``euclidean`` null-space projector;
+    coupled: the coupled whole-body inertia (``robot.full_inertia``) instead of the
+    paper's block-diagonal M.
+    """
+
+    base_scale: float = 1.0
+    projector: str = "dynamic"
+    coupled: bool = False
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.base_scale) and self.base_scale > 0.0):
+            raise ConfigError("sweep.base_scale", self.base_scale, "must be a number > 0")
+        if self.projector not in PROJECTORS:
+            raise ConfigError("sweep.projector", self.projector,
+                              f"must be one of {', '.join(PROJECTORS)}")
+
+    @property
+    def paper(self) -> bool:
+        """The paper's min-energy: scale 1, dynamically consistent, block-diagonal M."""
+        return self.base_scale == 1.0 and self.projector == "dynamic" and not self.coupled
+
+    @property
+    def label(self) -> str:
+        """Short text, e.g. ``s=0.32 dynamic`` or ``s=1 euclidean coupled``."""
+        return (f"s={self.base_scale:.3g} {self.projector}"
+                + (" coupled" if self.coupled else ""))
+
+    # --- the Variant interface (mmctl.study.runner.Variant) -----------------------
+    def config(self, cfg: Config) -> Config:
+        """``robot.full_inertia`` on for the coupled ablation; otherwise ``cfg``."""
+        if not self.coupled:
+            return cfg
+        return replace(cfg, robot=replace(cfg.robot, full_inertia=True))  # type: ignore[type-var]
+
+    def chain(self, cfg: Config) -> CycleChain:
+        """The robot's cycle chain with :class:`WeightedMinEnergy` as its min-energy
+        solver (the other solvers as built)."""
+        chain = CycleChain(cfg)
+        ctl = chain.controller
+        ctl.use_strategy("min-energy", WeightedMinEnergy(cfg, ctl.limits, self))
+        return chain
+
+    def user(self, seed: int, index: int) -> HumanParams:
+        """The study's own users: the sweep changes the robot only."""
+        return draw_user(seed, index)
+
+
+class WeightedMinEnergy(MinEnergy):
+    """:class:`~mmctl.control.strategies.MinEnergy` with the base's own inertia scaled
+    by ``setting.base_scale`` in the weighting and ``setting.projector`` as the
+    null-space projector.  With scale 1 and the dynamic projector it computes what
+    MinEnergy computes (the same calls on the same numbers).  With
+    ``idk.avoid_joint_limits`` the hand-over re-solves with the same weighting and
+    projector on the free coordinates."""
+
+    name = "min-energy"
+
+    def __init__(self, cfg: Config, limits: Limits | None, setting: Setting) -> None:
+        super().__init__(cfg, limits)
+        self.scale = setting.base_scale
+        self.euclidean = setting.projector == "euclidean"
+
+    def _inertia(self, k: Kinematics) -> Vec:
+        """The weighting's M (9, 9): the base's own part scaled (coupled: the arm's
+        share of the base block unchanged, so M stays positive definite)."""
+        if self.full and k.M_full is not None:
+            M = k.M_full.copy()
+            M[6, 6] += (self.scale - 1.0) * k.M_b[0]
+            M[7, 7] += (self.scale - 1.0) * k.M_b[1]
+            M[8, 8] += (self.scale - 1.0) * k.M_b[2]
+            return M
+        M = np.zeros((9, 9))
+        M[:6, :6] = k.M_a
+        M[6, 6], M[7, 7], M[8, 8] = k.M_b * self.scale
+        return M
+
+    def _solve(self, J: Vec, M: Vec | None, m_b: Vec | None, k: Kinematics, v_d: Vec,
+               z: Vec) -> Vec:
+        """``J_M# v_d + P z`` on the columns of ``J``: block form when ``M`` is None."""
+        thr, damp = self.thr, self.damp
+        if M is None:
+            assert m_b is not None
+            if not self.euclidean:
+                return min_energy_block(J, k.M_a, m_b, v_d, z, thr, damp).x
+            x = min_energy_block(J, k.M_a, m_b, v_d, None, thr, damp).x
+        else:
+            if not self.euclidean:
+                return min_energy(J, M, v_d, z, singular_threshold=thr, max_damping=damp)
+            x = min_energy(J, M, v_d, singular_threshold=thr, max_damping=damp)
+        out: Vec = x + null_project(J, z, thr, damp).x
+        return out
+
+    def solve(self, p: Problem) -> Vec:
+        k = p.kin
+        if self.full and k.M_full is not None:
+            x = self._solve(k.J, self._inertia(k), None, k, p.v_d, p.z)
+        else:
+            x = self._solve(k.J, None, k.M_b * self.scale, k, p.v_d, p.z)
+        if self.limits is None:
+            return x
+        lb, ub = self.limits.avoidance_bounds(p.q[:6].tolist())
+        if bool(np.all(x >= lb)) and bool(np.all(x <= ub)):
+            return x
+        M = self._inertia(k)
+
+        def resolve(free: NDArray[np.bool_], rhs: Vec) -> Vec:
+            return self._solve(k.J[:, free], M[np.ix_(free, free)], None, k, rhs, p.z[free])
+
+        return hand_over(x, lb, ub, k.J, p.v_d, resolve)
+
+
+def settings(scales: Sequence[float] = DEFAULT_SCALES, projectors: Sequence[str] = PROJECTORS,
+             coupled: bool = True) -> list[Setting]:
+    """Every (scale, projector) pair, then the coupled ablation at scale 1 with each
+    projector (``coupled``)."""
+    out = [Setting(float(s), pr) for pr in projectors for s in scales]
+    if coupled:
+        out += [Setting(1.0, pr, True) for pr in projectors]
+    return out
+
+
+class SweepRow(NamedTuple):
+    """One setting's executions summarised over the users: ``approach`` is
+    ``min-energy`` (with ``setting``) or ``locomotion`` (setting None); medians of the
+    paper's metrics [J, N, m/s, m, s]; limited: median over users of the fraction of
+    samples on which a limit bound the command; completed: executions finished within
+    the time limit; dominates: median Ē and median x_f both below the paper's point's."""
+
+    approach: str
+    setting: Setting | None
+    users: int
+    E: float
+    F_h: float
+    v: float
+    x_f: float
+    T_f: float
+    E_base: float
+    limited: float
+    completed: int
+    faults: int
+    dominates: bool
+
+
+class SweepResult(NamedTuple):
+    """rows: one per setting (locomotion last); executions[i]: row i's executions in
+    user order; cpu_time [s] and control cycles summed over the workers."""
+
+    rows: list[SweepRow]
+    executions: list[list[Execution]]
+    cpu_time: float
+    cycles: int
+
+
+Job = tuple[StudyConfig, int, str, Setting | None, int]
+
+
+def _work(job: Job) -> tuple[int, Execution, float, int]:
+    study, user, strategy, setting, index = job
+    ex, cpu, cycles = run_execution(study, user, strategy, variant=setting)
+    return index, ex, cpu, cycles
+
+
+def _row(approach: str, setting: Setting | None, execs: Sequence[Execution]) -> SweepRow:
+    def med(name: str) -> float:
+        return float(np.median([getattr(e, name) for e in execs]))
+
+    return SweepRow(approach, setting, len(execs), med("E"), med("F_h"), med("v"), med("x_f"),
+                    med("T_f"), med("E_base"), med("limited"),
+                    sum(1 for e in execs if e.completed), sum(e.faults for e in execs), False)
+
+
+def run_sweep(study: StudyConfig, grid: Sequence[Setting], executor: Executor | None = None,
+              progress: Progress | None = None, locomotion: bool = True) -> SweepResult:
+    """Every setting of ``grid`` (min-energy) and, with ``locomotion``, the locomotion
+    approach, for the users of ``study`` (its ``strategies`` are not used), on
+    ``executor`` (default: this process)."""
+    if not grid:
+        raise ConfigError("sweep.settings", [], "name at least one setting")
+    entries: list[tuple[str, Setting | None]] = [("min-energy", s) for s in grid]
+    if locomotion:
+        entries.append(("locomotion", None))
+    jobs: list[Job] = [(study, u, a, s, i) for i, (a, s) in enumerate(entries)
+                       for u in range(study.users)]
+    run = executor if executor is not None else make_executor(1)
+    done: list[tuple[int, Execution, float, int]] = []
+    try:
+        for r in run.map_unordered(_work, jobs):
+            done.append(r)
+            if progress is not None:
+                a, s = entries[r[0]]
+                progress(len(done), f"user {r[1].user} {a if s is None else s.label}")
+    finally:
+        if executor is None:
+            run.close()
+    done.sort(key=lambda r: (r[0], r[1].user))
+    per: list[list[Execution]] = [[] for _ in entries]
+    for i, ex, _cpu, _cyc in done:
+        per[i].append(ex)
+    rows = [_row(a, s, per[i]) for i, (a, s) in enumerate(entries)]
+    paper = next((r for r in rows if r.setting is not None and r.setting.paper), None)
+    if paper is not None:
+        rows = [r._replace(dominates=r.setting is not None and not r.setting.paper
+                           and r.E < paper.E and r.x_f < paper.x_f) for r in rows]
+    return SweepResult(rows, per, sum(r[2] for r in done), sum(r[3] for r in done))
+
+
+#: sweep.csv columns, in order.
+CSV_COLUMNS: tuple[str, ...] = (
+    "approach", "base_scale", "projector", "coupled", "paper", "users", "E", "F_h", "v", "x_f",
+    "T_f", "E_base", "limited", "completed", "faults", "dominates",
+)
+
+
+def sweep_csv(rows: Sequence[SweepRow]) -> str:
+    """sweep.csv content: one row per setting (floats with 10 significant digits)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_COLUMNS)
+    for r in rows:
+        s = r.setting
+        w.writerow([r.approach, "" if s is None else format(s.base_scale, ".10g"),
+                    "" if s is None else s.projector, "" if s is None else int(s.coupled),
+                    int(s is not None and s.paper), r.users,
+                    *(format(getattr(r, m), ".10g")
+                      for m in ("E", "F_h", "v", "x_f", "T_f", "E_base", "limited")),
+                    r.completed, r.faults, int(r.dominates)])
+    return buf.getvalue()
+
+
+def sweep_table(rows: Sequence[SweepRow]) -> str:
+    """Markdown table of the sweep: one row per setting."""
+    lines = [("| approach | s | projector | M | Ē [J] | x_f [m] | F̄_h [N] | T_f [s] "
+              "| base share of Ē | limit active | dominates the paper's |"),
+             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---|"]
+    for r in rows:
+        s = r.setting
+        share = r.E_base / r.E if r.E > 0 else math.nan
+        name = "min-energy (paper)" if s is not None and s.paper else r.approach
+        lines.append(
+            f"| {name} | {'' if s is None else f'{s.base_scale:.3g}'} "
+            f"| {'' if s is None else s.projector} "
+            f"| {'' if s is None else ('coupled' if s.coupled else 'block')} "
+            f"| {r.E:.3f} | {r.x_f:.3f} | {r.F_h:.2f} | {r.T_f:.2f} | {100 * share:.0f} % "
+            f"| {100 * r.limited:.1f} % | {'yes' if r.dominates else ''} |")
+    return "\n".join(lines)
+
+
+def write_sweep(out: Path, result: SweepResult, meta: dict[str, Any],
+                figure: bool = True) -> list[Path]:
+    """sweep.csv (and sweep.png) into ``out``; returns the paths written."""
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / "sweep.csv"]
+    paths[0].write_text(sweep_csv(result.rows), encoding="utf-8")
+    if figure:
+        from mmctl.study.plots import sweep_curve
+
+        paths.append(out / "sweep.png")
+        sweep_curve(result.rows, paths[1], meta)
+    return paths
