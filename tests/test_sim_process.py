@@ -229,7 +229,11 @@ def test_the_enabling_switch_through_the_fake_urs_inputs(sim: Sim) -> None:
         sim.wait_for(lambda: daemon_status()["cycles"] > st["cycles"] + 250, "half a second")
         assert np.abs(handle() - p1).max() < 1e-4  # still, while the person pushes on
         sim.call("enabling", held=True)
-        sim.wait_for(lambda: handle()[1] - p1[1] > 0.02, "the handle to move on along +y")
+        try:
+            sim.wait_for(lambda: handle()[1] - p1[1] > 0.02, "the handle to move on along +y")
+        except AssertionError as exc:  # (seen once under a heavy load: say why)
+            raise AssertionError(f"{exc}\ndaemon status: {daemon_status()}\ndaemon log:\n"
+                                 f"{out.read_text()[-4000:]}") from None
         # the pendant's speed slider: the daemon reads it through RTDE (and scales the
         # base with it, tests/test_cycle.py)
         assert sim.call("slider", fraction=0.4)["speed_slider"] == 0.4
