@@ -98,11 +98,7 @@ class MinEnergy(IdkStrategy):
 
     def solve(self, p: Problem) -> Vec:
         k = p.kin
-        if self.full and k.M_full is not None:
-            x = min_energy(k.J, k.M_full, p.v_d, p.z,
-                           singular_threshold=self.thr, max_damping=self.damp)
-        else:
-            x = min_energy_block(k.J, k.M_a, k.M_b, p.v_d, p.z, self.thr, self.damp).x
+        x = self._whole(k, p.v_d, p.z)
         if self.limits is None:
             return x
         lb, ub = self.limits.avoidance_bounds(p.q[:6].tolist())
@@ -111,10 +107,19 @@ class MinEnergy(IdkStrategy):
         M = self._inertia(k)
 
         def resolve(free: NDArray[np.bool_], rhs: Vec) -> Vec:
-            return min_energy(k.J[:, free], M[np.ix_(free, free)], rhs, p.z[free],
-                              singular_threshold=self.thr, max_damping=self.damp)
+            return self._weighted(k.J[:, free], M[np.ix_(free, free)], rhs, p.z[free])
 
         return hand_over(x, lb, ub, k.J, p.v_d, resolve)
+
+    def _whole(self, k: Kinematics, v_d: Vec, z: Vec) -> Vec:
+        """The solve on every coordinate (block form unless ``robot.full_inertia``)."""
+        if self.full and k.M_full is not None:
+            return self._weighted(k.J, k.M_full, v_d, z)
+        return min_energy_block(k.J, k.M_a, k.M_b, v_d, z, self.thr, self.damp).x
+
+    def _weighted(self, J: Vec, M: Vec, v_d: Vec, z: Vec) -> Vec:
+        """``J_M# v_d + P z`` with a dense weighting ``M`` on the columns of ``J``."""
+        return min_energy(J, M, v_d, z, singular_threshold=self.thr, max_damping=self.damp)
 
     def _inertia(self, k: Kinematics) -> Vec:
         if self.full and k.M_full is not None:

@@ -47,7 +47,7 @@ from mmctl.config import Config
 from mmctl.control.cycle import CycleChain
 from mmctl.control.idk import min_energy, min_energy_block, null_project
 from mmctl.control.limits import Limits
-from mmctl.control.strategies import MinEnergy, Problem, hand_over
+from mmctl.control.strategies import MinEnergy
 from mmctl.errors import ConfigError
 from mmctl.model.robot import Kinematics
 from mmctl.sim.human import HumanParams
@@ -147,40 +147,23 @@ class WeightedMinEnergy(MinEnergy):
         M[6, 6], M[7, 7], M[8, 8] = k.M_b * self.scale
         return M
 
-    def _solve(self, J: Vec, M: Vec | None, m_b: Vec | None, k: Kinematics, v_d: Vec,
-               z: Vec) -> Vec:
-        """``J_M# v_d + P z`` on the columns of ``J``: block form when ``M`` is None."""
-        thr, damp = self.thr, self.damp
-        if M is None:
-            assert m_b is not None
-            if not self.euclidean:
-                return min_energy_block(J, k.M_a, m_b, v_d, z, thr, damp).x
-            x = min_energy_block(J, k.M_a, m_b, v_d, None, thr, damp).x
-        else:
-            if not self.euclidean:
-                return min_energy(J, M, v_d, z, singular_threshold=thr, max_damping=damp)
-            x = min_energy(J, M, v_d, singular_threshold=thr, max_damping=damp)
-        out: Vec = x + null_project(J, z, thr, damp).x
+    def _whole(self, k: Kinematics, v_d: Vec, z: Vec) -> Vec:
+        if self.full and k.M_full is not None:
+            return self._weighted(k.J, self._inertia(k), v_d, z)
+        m_b = k.M_b * self.scale
+        if not self.euclidean:
+            return min_energy_block(k.J, k.M_a, m_b, v_d, z, self.thr, self.damp).x
+        x = min_energy_block(k.J, k.M_a, m_b, v_d, None, self.thr, self.damp).x
+        out: Vec = x + null_project(k.J, z, self.thr, self.damp).x
         return out
 
-    def solve(self, p: Problem) -> Vec:
-        k = p.kin
-        if self.full and k.M_full is not None:
-            x = self._solve(k.J, self._inertia(k), None, k, p.v_d, p.z)
-        else:
-            x = self._solve(k.J, None, k.M_b * self.scale, k, p.v_d, p.z)
-        if self.limits is None:
-            return x
-        lb, ub = self.limits.avoidance_bounds(p.q[:6].tolist())
-        if bool(np.all(x >= lb)) and bool(np.all(x <= ub)):
-            return x
-        M = self._inertia(k)
-
-        def resolve(free: NDArray[np.bool_], rhs: Vec) -> Vec:
-            return self._solve(k.J[:, free], M[np.ix_(free, free)], None, k, rhs, p.z[free])
-
-        return hand_over(x, lb, ub, k.J, p.v_d, resolve)
-
+    def _weighted(self, J: Vec, M: Vec, v_d: Vec, z: Vec) -> Vec:
+        thr, damp = self.thr, self.damp
+        if not self.euclidean:
+            return min_energy(J, M, v_d, z, singular_threshold=thr, max_damping=damp)
+        x = min_energy(J, M, v_d, singular_threshold=thr, max_damping=damp)
+        out: Vec = x + null_project(J, z, thr, damp).x
+        return out
 
 def settings(scales: Sequence[float] = DEFAULT_SCALES, projectors: Sequence[str] = PROJECTORS,
              coupled: bool = True) -> list[Setting]:
