@@ -289,12 +289,16 @@ def test_pose_record_writes_the_arms_pose_into_a_config(
     target = tmp_path / "robot.yaml"
     text = (ROOT / "config" / "robot.yaml").read_text()
     target.write_text(text)
-    before = daemon.status()["robot"]["q"][:6]
+    before = np.array(daemon.status()["robot"]["q"][:6])
     assert main(["pose", "record", "--write", str(target), "--socket", str(daemon.socket)]) == 0
+    after = np.array(daemon.status()["robot"]["q"][:6])
     out = capsys.readouterr().out
     assert out.startswith("robot:\n  q_des: [") and f"written to {target}" in out, out
-    q = list(load_config(target).robot.q_des)
-    assert q == pytest.approx(before, abs=0.05)  # the arm moves a little under the push
+    q = np.array(load_config(target).robot.q_des)
+    # the arm moves on under the push (on a loaded machine the request takes a while):
+    # the recorded pose lies between the poses read before and after it
+    lo, hi = np.minimum(before, after) - 0.01, np.maximum(before, after) + 0.01
+    assert ((lo <= q) & (q <= hi)).all(), (before, q, after)
     assert target.read_text().count("#") == text.count("#") + 1
 
 

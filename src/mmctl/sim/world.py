@@ -443,7 +443,9 @@ class SimWorld:
             "human": self.human_on,
             "push": None if self.push is None else self.push.tolist(),
             "faults": sorted(self._faults),
-            "handle_world": [round(float(x), 5) for x in self._handle],
+            # the handle where the arm and the base are right now (the person's last
+            # update may be a while ago on a busy machine)
+            "handle_world": [round(float(x), 5) for x in self._handle_truth()],
             "hand_force": [round(float(x), 3) for x in self._last_force],
             "button": self.button,
             "speed_slider": self.speed_slider,
@@ -461,6 +463,12 @@ class SimWorld:
             "updates": self.updates,
             "error": None if self.error is None else repr(self.error),
         }
+
+    def _handle_truth(self) -> Vec:
+        if self._ur is None or self._drives is None:
+            return self._handle
+        with self._update_lock:  # the model's buffers are the person's thread's too
+            return self._observe()[2]
 
     def _arm_truth(self) -> dict[str, Any]:
         if self._ur is None:

@@ -153,8 +153,16 @@ class ProcessPublisher:
         try:
             if self.error is None:
                 conn.send(("close",))
+                # the child drains the ring before its reply: while it makes progress
+                # (a loaded machine slows it), wait on; a child stuck for close_timeout
+                # is an error
+                progress = (len(self.ring), self.published) if self.ring is not None else None
                 while True:
                     if not conn.poll(self.close_timeout):
+                        now = (len(self.ring), self.published) if self.ring is not None else None
+                        if now is not None and now != progress:
+                            progress = now
+                            continue
                         error = f"no last flush within {self.close_timeout:g} s"
                         break
                     reply = conn.recv()
@@ -270,6 +278,24 @@ def _background(avoid_cpus: tuple[int, ...] = ()) -> None:
         os.setpriority(os.PRIO_PROCESS, tid, NICE)
 
 
+def _foreground(nice: int) -> None:
+    """Undo :func:`_background` for every thread (back to SCHED_OTHER at ``nice``), as
+    far as this process may (raising the priority needs CAP_SYS_NICE, which the systemd
+    unit grants): the loop has ended and the last flush should not wait behind every
+    other process of a busy machine.  Affinity is left as it is."""
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        tids = [0]
+    for tid in tids:
+        try:
+            if hasattr(os, "SCHED_OTHER"):
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, tid, nice)
+        except OSError:
+            pass
+
+
 def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destinations,
            recording_name: str, static: dict[str, float | int | str],
            mecanum: MecanumConfig | None, robot: RobotConfig | None, loop_rate_hz: float,
@@ -294,6 +320,7 @@ def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destina
                         scene_rate_hz=scene_rate_hz, ring=ring, scene=scene, pace=False,
                         mecanum=mecanum)
         pub.start()
+        nice = os.getpriority(os.PRIO_PROCESS, 0)
         # start-up (imports, rerun's sinks) at normal priority: in the background class
         # from the start, a busy machine kept the child from ever getting ready
         _background(avoid_cpus)
@@ -311,6 +338,7 @@ def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destina
             if msg[0] == "event":
                 pub.post_event(msg[1])
             elif msg[0] == "close":
+                _foreground(nice)  # the loop has ended: the last flush needs a CPU share
                 pub.close()
                 conn.send(("closed", pub.stats()))
                 return
