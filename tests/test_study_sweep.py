@@ -141,6 +141,8 @@ def test_the_papers_setting_reproduces_the_plain_study() -> None:
     assert res.rows[0].E == pytest.approx(float(np.median([e.E for e in plain
                                                            if e.strategy == "min-energy"])))
     assert all(0.0 <= r.limited <= 1.0 for r in res.rows)
+    assert res.rows[0].x_f_hold == pytest.approx(
+        float(np.median([e.x_f_hold for e in res.executions[0]])))
 
 
 def test_sweep_command_writes_its_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -155,6 +157,7 @@ def test_sweep_command_writes_its_files(tmp_path: Path, capsys: pytest.CaptureFi
                                ("locomotion", "", "", "", "0")]
     for r in rows:
         assert float(r["E"]) > 0.0 and float(r["x_f"]) > 0.0 and r["completed"] == "1"
+        assert float(r["x_f_hold"]) > 0.0  # after the end-of-trial hold, for every setting
         assert 0.0 <= float(r["limited"]) <= 1.0
     png = (tmp_path / "sweep.png").read_bytes()
     assert png[:8] == PNG and len(png) > 10_000

@@ -16,6 +16,7 @@ In the switch panels, locomotion phases are shaded.  The analyses' figures:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -186,6 +187,10 @@ def sweep_curve(rows: Sequence[Any], path: Path, meta: Mapping[str, Any] | None 
                  else "ordinary  I − J# J")
         ax.plot([r.x_f for r in rs], [r.E for r in rs], "o-", color=c, ms=4, lw=1.2,
                 label=f"min-energy, {label}")
+        held = [r for r in rs if math.isfinite(getattr(r, "x_f_hold", math.nan))]
+        if held:  # the same settings after the end-of-trial hold: how far x_f recovers
+            ax.plot([r.x_f_hold for r in held], [r.E for r in held], "o--", color=c, ms=4,
+                    mfc="none", lw=0.8, alpha=0.8, label=f"  the same after the hold ({proj})")
         for r in (rs[0], rs[-1]) if len(rs) > 1 else rs:  # the ends: which way s grows
             ax.annotate(f"s={r.setting.base_scale:.2g}", (r.x_f, r.E),
                         textcoords="offset points", xytext=(5, 4), fontsize=7, color=c)

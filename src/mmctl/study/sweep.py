@@ -25,8 +25,9 @@ locomotion approach runs alongside as the reference point.  At ``base_scale`` 1 
 the dynamic projector and no coupling the solver computes exactly what the plain
 min-energy strategy computes (``tests/test_study_sweep.py`` compares the executions).
 
-Outputs: ``sweep.csv`` (one row per setting: medians over the users, the
-limit-active fraction, whether it dominates the paper's point) and ``sweep.png``
+Outputs: ``sweep.csv`` (one row per setting: medians over the users, x_f also after
+the end-of-trial hold, the limit-active fraction, whether it dominates the paper's
+point) and ``sweep.png``
 (:func:`mmctl.study.plots.sweep_curve`).
 """
 
@@ -180,7 +181,8 @@ class SweepRow(NamedTuple):
     ``min-energy`` (with ``setting``) or ``locomotion`` (setting None); medians of the
     paper's metrics [J, N, m/s, m, s]; limited: median over users of the fraction of
     samples on which a limit bound the command; completed: executions finished within
-    the time limit; dominates: median Ē and median x_f both below the paper's point's."""
+    the time limit; dominates: median Ē and median x_f both below the paper's point's;
+    x_f_hold: median x_f after the end-of-trial hold [m] (NaN: no hold)."""
 
     approach: str
     setting: Setting | None
@@ -195,6 +197,7 @@ class SweepRow(NamedTuple):
     completed: int
     faults: int
     dominates: bool
+    x_f_hold: float = math.nan
 
 
 class SweepResult(NamedTuple):
@@ -222,7 +225,8 @@ def _row(approach: str, setting: Setting | None, execs: Sequence[Execution]) -> 
 
     return SweepRow(approach, setting, len(execs), med("E"), med("F_h"), med("v"), med("x_f"),
                     med("T_f"), med("E_base"), med("limited"),
-                    sum(1 for e in execs if e.completed), sum(e.faults for e in execs), False)
+                    sum(1 for e in execs if e.completed), sum(e.faults for e in execs), False,
+                    med("x_f_hold"))
 
 
 def run_sweep(study: StudyConfig, grid: Sequence[Setting], executor: Executor | None = None,
@@ -263,7 +267,7 @@ def run_sweep(study: StudyConfig, grid: Sequence[Setting], executor: Executor | 
 #: sweep.csv columns, in order.
 CSV_COLUMNS: tuple[str, ...] = (
     "approach", "base_scale", "projector", "coupled", "paper", "users", "E", "F_h", "v", "x_f",
-    "T_f", "E_base", "limited", "completed", "faults", "dominates",
+    "T_f", "E_base", "limited", "completed", "faults", "dominates", "x_f_hold",
 )
 
 
@@ -279,15 +283,15 @@ def sweep_csv(rows: Sequence[SweepRow]) -> str:
                     int(s is not None and s.paper), r.users,
                     *(format(getattr(r, m), ".10g")
                       for m in ("E", "F_h", "v", "x_f", "T_f", "E_base", "limited")),
-                    r.completed, r.faults, int(r.dominates)])
+                    r.completed, r.faults, int(r.dominates), format(r.x_f_hold, ".10g")])
     return buf.getvalue()
 
 
 def sweep_table(rows: Sequence[SweepRow]) -> str:
     """Markdown table of the sweep: one row per setting."""
-    lines = [("| approach | s | projector | M | Ē [J] | x_f [m] | F̄_h [N] | T_f [s] "
-              "| base share of Ē | limit active | dominates the paper's |"),
-             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---|"]
+    lines = [("| approach | s | projector | M | Ē [J] | x_f [m] | x_f hold [m] | F̄_h [N] "
+              "| T_f [s] | base share of Ē | limit active | dominates the paper's |"),
+             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         s = r.setting
         share = r.E_base / r.E if r.E > 0 else math.nan
@@ -296,7 +300,7 @@ def sweep_table(rows: Sequence[SweepRow]) -> str:
             f"| {name} | {'' if s is None else f'{s.base_scale:.3g}'} "
             f"| {'' if s is None else s.projector} "
             f"| {'' if s is None else ('coupled' if s.coupled else 'block')} "
-            f"| {r.E:.3f} | {r.x_f:.3f} | {r.F_h:.2f} | {r.T_f:.2f} | {100 * share:.0f} % "
+            f"| {r.E:.3f} | {r.x_f:.3f} | {r.x_f_hold:.3f} | {r.F_h:.2f} | {r.T_f:.2f} | {100 * share:.0f} % "
             f"| {100 * r.limited:.1f} % | {'yes' if r.dominates else ''} |")
     return "\n".join(lines)
 
