@@ -8,12 +8,11 @@ import os
 from pathlib import Path
 
 import pytest
-import yaml
 
 from mmctl.cli import main
 from mmctl.runtime.pmqos import DEVICE, current_limit
+from simconfig import LOAD_PROOF, write_sim_config
 
-ROOT = Path(__file__).resolve().parents[1]
 KEYS = {"compute_p50_us", "compute_p99_us", "compute_max_us", "latency_p50_us",
         "latency_p99_us", "latency_p999_us", "miss_rate", "cycles"}
 
@@ -22,10 +21,10 @@ KEYS = {"compute_p50_us", "compute_p99_us", "compute_max_us", "latency_p50_us",
 @pytest.mark.parametrize("process", [True, False], ids=["child-process", "thread"])
 def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
                          capsys: pytest.CaptureFixture[str]) -> None:
-    cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
-    cfg.setdefault("telemetry", {})["process"] = process
-    path = tmp_path / "bench.yaml"
-    path.write_text(yaml.safe_dump(cfg))
+    # the load-proof budgets: on a busy machine a stale device would fault the daemon,
+    # and a faulted cycle has no sample for the telemetry windows to publish
+    path = write_sim_config(loopback_host, tmp_path,
+                            {**LOAD_PROOF, "telemetry": {"process": process}}, "bench.yaml")
     rc = main(["bench", "loop", "--seconds", "1", "--json", "--telemetry", "--config", str(path),
                "--host", loopback_host, "--cpu-dma-latency", "1500", "--telemetry-seconds", "2",
                "--telemetry-windows", "5", "--latency-steps", "4" if process else "0"])
@@ -51,7 +50,7 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
     assert ci["pairs"] == 5 and ci["confidence"] == 0.95
     for key in ("compute_p99_growth_ci", "extra_misses_per_1e5_ci"):
         assert ci[key][0] <= ci[key][1], key
-    assert tel["published"] > 0  # the "on" windows' samples reached the recording
+    assert tel["published"] > 0, tel  # the "on" windows' samples reached the recording
     assert tel["published"] + tel["dropped"] == tel["accepted"]
     assert tel["publisher"] == ("process" if process else "thread")
     assert 0.0 < tel["hook_p50_us"] <= tel["hook_p99_us"]  # the hook ran in the "on" windows
