@@ -51,6 +51,12 @@ POPULATION: dict[str, Draw] = {
     "reaction_time": Draw("lognormal", 0.30, 0.25, 0.15, 0.70),  # s
     "dwell_time": Draw("uniform", 0.6, 0.2, 0.4, 0.8),  # s
     "f_comfort": Draw("normal", 40.0, 6.0, 25.0, 60.0),  # N
+    # comfort_reach: 0.62-0.77 of the UR10e's 1.3 m reach (UR data sheet): a person
+    # who steers the arm by the handle treats its reach as their own, whose normal
+    # (forearm-sweep) reach is 0.75 of the maximum (15 in / 20 in, Sanders & McCormick
+    # 1987, as ergonomics guides quote it); UR's "recommended reach" is inside its
+    # maximum, beyond it the tool's orientation (held horizontal in the wall task) is
+    # restricted (UR, "What is a singularity?").  docs/study.md, "Population".
     "comfort_reach": Draw("uniform", 0.90, 0.10, 0.80, 1.00),  # m
     "near_distance": Draw("uniform", 0.25, 0.07, 0.18, 0.32),  # m
     "decision_delay": Draw("lognormal", 0.60, 0.30, 0.30, 1.50),  # s
