@@ -100,3 +100,55 @@ def test_a_dead_child_is_reported_and_the_producer_never_blocks(tmp_path: Path) 
     with pytest.raises(TelemetryError):
         pub.close()
     assert pub.pid is None
+
+
+def test_the_last_flush_runs_in_the_normal_class_again(tmp_path: Path) -> None:
+    """The child works as background (SCHED_IDLE) while the loop runs; for its last flush
+    it returns to the normal class at the nice it started with, every thread of it
+    (a busy machine gave an idle-class flush no CPU for over 30 s)."""
+    code = (
+        "import os, sys, threading\n"
+        "from mmctl.telemetry.process_publisher import _background, _foreground\n"
+        "nice = os.getpriority(os.PRIO_PROCESS, 0)\n"
+        "stop = threading.Event()\n"
+        "t = threading.Thread(target=stop.wait); t.start()\n"
+        "tids = [int(x) for x in os.listdir('/proc/self/task')]\n"
+        "_background(())\n"
+        "idle = {os.sched_getscheduler(x) for x in tids}\n"
+        "_foreground(nice)\n"
+        "back = {os.sched_getscheduler(x) for x in tids}\n"
+        "nices = {os.getpriority(os.PRIO_PROCESS, x) for x in tids}\n"
+        "stop.set(); t.join()\n"
+        "print(len(tids), idle == {os.SCHED_IDLE}, back == {os.SCHED_OTHER}, nices == {nice})\n")
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True).stdout.split()
+    # every thread (ours and any the imports started): idle class in the background;
+    # the normal class and the nice after
+    assert int(out[0]) >= 2 and out[1:] == ["True", "True", "True"], out
+
+
+def test_a_stopped_child_is_an_error_at_close_not_a_hang(tmp_path: Path) -> None:
+    """close waits on while the child drains the ring, but a child that makes no
+    progress for close_timeout is an error (here: stopped by SIGSTOP)."""
+    pub = ProcessPublisher(Destinations(record=str(tmp_path / "stopped.rrd")),
+                           close_timeout=1.0)
+    pub.start()
+    pid = pub.pid
+    assert pid is not None
+    try:
+        os.kill(pid, signal.SIGSTOP)
+        for s in synthetic_samples(50):
+            assert pub.put(s)
+        t0 = time.monotonic()
+        with pytest.raises(TelemetryError, match="no last flush within 1 s"):
+            pub.close()
+        assert time.monotonic() - t0 < WAIT
+        assert pub.pid is None  # killed
+    finally:
+        try:
+            os.kill(pid, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
