@@ -274,10 +274,12 @@ def sensitivity_chart(claims: Sequence[Mapping[str, Any]], path: Path,
         ax.grid(axis="x", alpha=0.3)
     for ax in axes.ravel()[n:]:
         ax.set_visible(False)
-    fig.suptitle((title + "\n" if title else "") + "μ* / max μ* (bars), σ / max μ* (ticks); "
-                 "colour: share of points where the conclusion holds (red 0 → green 1); "
-                 "■/□ per level of the factor, low → high: holds / not at most points",
-                 fontsize=9)
-    fig.tight_layout()
+    text = ((title + "\n" if title else "") + "μ* / max μ* (bars), σ / max μ* (ticks); "
+            "colour: share of points where the conclusion holds (red 0 → green 1)\n"
+            "■/□ per level of the factor, low → high: holds / not at most points")
+    fig.suptitle(text, fontsize=9)
+    # the panels below the title's lines (tight_layout alone let them overlap)
+    top = 1.0 - (0.17 * (text.count("\n") + 1) + 0.15) / fig.get_figheight()
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, top))
     _save(fig, path)
     plt.close(fig)
