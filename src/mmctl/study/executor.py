@@ -118,3 +118,22 @@ def make_executor(jobs: int = 1, cluster: str | None = None) -> Executor:
     if jobs == 1:
         return InProcess()
     return LocalProcesses(jobs)
+
+
+def run_all(fn: Callable[[J], R], jobs: Sequence[J], executor: Executor | None = None,
+            workers: int = 1, progress: Callable[[int, str], None] | None = None,
+            describe: Callable[[R], str] | None = None) -> list[R]:
+    """``fn`` over ``jobs`` on ``executor`` (None: :func:`make_executor` of ``workers``,
+    closed afterwards); the results in the order they finished, with
+    ``progress(done, describe(result))`` after each."""
+    run = executor if executor is not None else make_executor(workers)
+    done: list[R] = []
+    try:
+        for r in run.map_unordered(fn, jobs):
+            done.append(r)
+            if progress is not None:
+                progress(len(done), describe(r) if describe is not None else "")
+    finally:
+        if executor is None:
+            run.close()
+    return done

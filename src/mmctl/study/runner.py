@@ -61,7 +61,7 @@ from mmctl.sim.human import (
 )
 from mmctl.sim.plant import Plant
 from mmctl.study.config import StudyConfig
-from mmctl.study.executor import Executor, make_executor
+from mmctl.study.executor import Executor, run_all
 from mmctl.study.results import Execution, Series
 from mmctl.study.users import draw_user
 from mmctl.types import ArmState, Odometry, Wrench
@@ -290,16 +290,8 @@ def run_study(study: StudyConfig, jobs: int = 1, progress: Progress | None = Non
     """Every user with every approach, on ``executor`` (default: ``jobs`` local
     processes, 1 = in this process; :mod:`mmctl.study.executor`)."""
     work = [(study, u, s) for u in range(study.users) for s in study.strategies]
-    done: list[tuple[Execution, float, int]] = []
-    run = executor if executor is not None else make_executor(jobs)
-    try:
-        for r in run.map_unordered(_work, work):
-            done.append(r)
-            if progress is not None:
-                progress(len(done), f"user {r[0].user} {r[0].strategy}")
-    finally:
-        if executor is None:
-            run.close()
+    done = run_all(_work, work, executor, jobs, progress,
+                   lambda r: f"user {r[0].user} {r[0].strategy}")
     order = {s: i for i, s in enumerate(study.strategies)}
     done.sort(key=lambda r: (r[0].user, order[r[0].strategy]))
     return StudyResult([r[0] for r in done], sum(r[1] for r in done), sum(r[2] for r in done))

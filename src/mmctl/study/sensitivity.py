@@ -55,7 +55,7 @@ from mmctl.control.cycle import CycleChain
 from mmctl.errors import ConfigError, MmctlError
 from mmctl.sim.human import HumanParams
 from mmctl.study.config import StudyConfig
-from mmctl.study.executor import Executor, make_executor
+from mmctl.study.executor import Executor, run_all
 from mmctl.study.replication import Claim, paper_claims
 from mmctl.study.results import METRIC_LABELS, Execution
 from mmctl.study.runner import Progress, run_execution
@@ -326,16 +326,8 @@ def run_points(study: StudyConfig, factors: Sequence[Factor], x: np.ndarray,
     for i, row in enumerate(x):
         st, pt = point_setting(study, factors, [float(v) for v in row])
         jobs += [(st, u, s, pt, i) for u in range(st.users) for s in st.strategies]
-    run = executor if executor is not None else make_executor(1)
-    done: list[tuple[int, Execution, float, int]] = []
-    try:
-        for r in run.map_unordered(_work, jobs):
-            done.append(r)
-            if progress is not None:
-                progress(len(done), f"point {r[0]} user {r[1].user} {r[1].strategy}")
-    finally:
-        if executor is None:
-            run.close()
+    done = run_all(_work, jobs, executor, 1, progress,
+                   lambda r: f"point {r[0]} user {r[1].user} {r[1].strategy}")
     order = {s: j for j, s in enumerate(study.strategies)}
     done.sort(key=lambda r: (r[0], r[1].user, order[r[1].strategy]))
     per: list[list[Execution]] = [[] for _ in range(len(x))]

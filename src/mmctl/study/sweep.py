@@ -53,7 +53,7 @@ from mmctl.errors import ConfigError
 from mmctl.model.robot import Kinematics
 from mmctl.sim.human import HumanParams
 from mmctl.study.config import StudyConfig
-from mmctl.study.executor import Executor, make_executor
+from mmctl.study.executor import Executor, run_all
 from mmctl.study.results import Execution
 from mmctl.study.runner import Progress, run_execution
 from mmctl.study.users import draw_user
@@ -241,17 +241,11 @@ def run_sweep(study: StudyConfig, grid: Sequence[Setting], executor: Executor | 
         entries.append(("locomotion", None))
     jobs: list[Job] = [(study, u, a, s, i) for i, (a, s) in enumerate(entries)
                        for u in range(study.users)]
-    run = executor if executor is not None else make_executor(1)
-    done: list[tuple[int, Execution, float, int]] = []
-    try:
-        for r in run.map_unordered(_work, jobs):
-            done.append(r)
-            if progress is not None:
-                a, s = entries[r[0]]
-                progress(len(done), f"user {r[1].user} {a if s is None else s.label}")
-    finally:
-        if executor is None:
-            run.close()
+    def describe(r: tuple[int, Execution, float, int]) -> str:
+        a, s = entries[r[0]]
+        return f"user {r[1].user} {a if s is None else s.label}"
+
+    done = run_all(_work, jobs, executor, 1, progress, describe)
     done.sort(key=lambda r: (r[0], r[1].user))
     per: list[list[Execution]] = [[] for _ in entries]
     for i, ex, _cpu, _cyc in done:
