@@ -32,6 +32,24 @@ class TransportError(MmctlError):
     """A device link failed: nothing answers, a frame is malformed, a peer disconnected."""
 
 
+class LinkLost(TransportError):
+    """A device link failed under a running client (a closed socketcand connection, a
+    CAN adapter gone, a helper thread of the client library that died).
+
+    link: the link's name (``socketcand:can0@127.0.0.2:29536``); cause: the fault it
+    means for the device (``FaultCause.SENSOR_LINK``, ``FaultCause.BASE_LINK``);
+    reason: what failed.  Raised by every later call until the device's ``reconnect()``
+    succeeds.
+    """
+
+    def __init__(self, link: str, cause: FaultCause | str, reason: str):
+        self.link = link
+        self.cause = FaultCause(cause)
+        self.reason = reason
+        text = reason if link in reason else f"{link}: {reason}"
+        super().__init__(f"{text} [{self.cause.value}]")
+
+
 class ProtocolError(TransportError):
     """Bytes arrived that do not follow the wire protocol (bad length, CRC, opcode...)."""
 

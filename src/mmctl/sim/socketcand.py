@@ -254,6 +254,18 @@ class SocketcandServer:
         with self._lock:
             return len(self._clients)
 
+    def drop_clients(self, channel: str | None = None) -> int:
+        """Close every client connection (only those on ``channel`` if given), as a
+        pulled USB-CAN adapter or a crashed server would: the clients see the TCP
+        connection end.  The server keeps listening; a client may connect again.
+        Returns how many connections were closed."""
+        with self._lock:
+            doomed = [c for c in self._clients if channel is None or c.channel == channel]
+        for client in doomed:
+            client.close()
+        log.info("socketcand_clients_dropped", channel=channel, clients=len(doomed))
+        return len(doomed)
+
     def start(self) -> Self:
         """Bind (SO_REUSEADDR), listen and start the accept thread.
 

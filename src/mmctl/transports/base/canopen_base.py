@@ -19,6 +19,8 @@ stop read back and checked):
 * 0x6060 = 3 (profile velocity); 0x6083/0x6084/0x6085 = the wheel acceleration
   ``limits.base_linear_acceleration / wheel_radius`` in [counts/s^2];
 * RPDO1 (COB-ID 0x200+id, synchronous): target velocity 0x60FF [counts/s];
+* RPDO2 (COB-ID 0x300+id, event-driven, type 255, no deadline): controlword 0x6040,
+  sent only by ``disable(wait=False)`` (below); every other controlword goes by SDO;
 * TPDO1 (0x180+id, every SYNC): position actual 0x6064 [counts], velocity actual
   0x606C [counts/s];
 * TPDO2 (0x280+id, event-driven, type 255): statusword 0x6041 (sent on change).
@@ -32,6 +34,25 @@ wheel revolution, so ``rad = counts * 2 pi / counts_per_rev``.
 A drive that rebooted (boot-up message) comes back with its default objects (no PDOs,
 no heartbeat, no watchdog, shutdown option 0 = coast): :meth:`CanopenBase.enable`
 configures it again, fully, before enabling it.  See docs/base-drives.md.
+
+**The loop thread's calls never wait for a drive.**  :meth:`CanopenBase.stop` sends
+the zero targets (four RPDO1s + SYNC); :meth:`CanopenBase.disable` with ``wait=False``
+sends the zero targets, then SHUTDOWN as the controlword in RPDO2, to every drive whose
+last statusword (TPDO2, sent on change) does not show it stopping by itself already
+(QUICK STOP ACTIVE, FAULT REACTION ACTIVE, FAULT): frames only, no SDO, so a silent bus
+costs nothing (it used to cost an SDO timeout per silent drive, 0.5 s on the loop).
+Chosen over a fire-and-forget SDO (its unsolicited answer would land in the queue of
+the next SDO transfer, possibly another thread's) and over deferring the SDOs to a
+thread (the drive would learn of the stop later).  A drive that misses the frame is
+caught by its own watchdog: it stops hearing our heartbeat or its RPDO1 deadline expires
+(``base.command_watchdog``) and quick-stops (0x6007 = 3).  ``disable()`` (waiting, off
+the loop) still goes by SDO and checks every drive's state.
+
+**A lost link** (the CAN channel fails under the master: socketcand connection closed,
+adapter gone; see :mod:`mmctl.transports.canbus`): every call raises
+:class:`~mmctl.errors.LinkLost` (cause ``base_link_lost``) at once, without waiting,
+until :meth:`CanopenBase.reconnect` opens a new network and configures the drives
+again (left disabled).  Neither the receive thread nor the heartbeat producer dies.
 """
 
 from __future__ import annotations
@@ -57,11 +78,18 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError, SdoEr
 
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig
-from mmctl.errors import ConfigError, FaultCause, MmctlError, SafetyFault, TransportError
+from mmctl.errors import (
+    ConfigError,
+    FaultCause,
+    LinkLost,
+    MmctlError,
+    SafetyFault,
+    TransportError,
+)
 from mmctl.transports.base import cia402 as ds
 from mmctl.transports.base.kinematics import OdometryIntegrator, WheelCommand, wrap_delta
 from mmctl.transports.base.protocol import WHEEL_NAMES, DriveStatus
-from mmctl.transports.canbus import bus_options, check_link, describe
+from mmctl.transports.canbus import GuardedBus, describe, open_bus
 from mmctl.types import Odometry, Twist
 
 if TYPE_CHECKING:
@@ -87,14 +115,18 @@ _MOVING = frozenset({ds.Cia402State.OPERATION_ENABLED, ds.Cia402State.QUICK_STOP
 #: States in which the power stage is off or the drive holds at rest by itself.
 _SETTLED = frozenset(set(ds.Cia402State) - _MOVING - {ds.Cia402State.UNKNOWN})
 _TARGET = struct.Struct("<i")  # RPDO1: target velocity 0x60FF, INTEGER32 [counts/s]
+_CONTROL = struct.Struct("<H")  # RPDO2: controlword 0x6040, UNSIGNED16
+#: CiA 402 states in which a drive already stops by itself (no SHUTDOWN sent to it).
+_STOPPING = frozenset({ds.Cia402State.QUICK_STOP_ACTIVE, ds.Cia402State.FAULT_REACTION_ACTIVE,
+                       ds.Cia402State.FAULT})
 
 
-def _rpdo1_cob_id(pdo: PdoMap) -> int:
-    """RPDO1's COB-ID, after checking it maps exactly the INTEGER32 target velocity
-    (what :meth:`CanopenBase._send_wheels` packs)."""
+def _rpdo_cob_id(pdo: PdoMap, index: int, bits: int) -> int:
+    """An RPDO's COB-ID, after checking it maps exactly object ``index`` of ``bits``
+    (what :meth:`CanopenBase._send_wheels` / :meth:`CanopenBase._send_shutdowns` pack)."""
     mapped = [(var.index, var.subindex, var.length) for var in pdo.map]
-    if mapped != [(ds.TARGET_VELOCITY, 0, 32)] or pdo.cob_id is None:
-        raise TransportError(f"RPDO1 must map only 0x{ds.TARGET_VELOCITY:04X} (32 bits), "
+    if mapped != [(index, 0, bits)] or pdo.cob_id is None:
+        raise TransportError(f"{pdo.name} must map only 0x{index:04X} ({bits} bits), "
                              f"got {mapped}")
     return int(pdo.cob_id)
 
@@ -161,9 +193,11 @@ class CanopenBase:
         self._command = WheelCommand(cfg.mecanum, limits.wheel_velocity)
         self._odo = OdometryIntegrator(cfg.mecanum)
         self._network: canopen.Network | None = None
+        self._bus: GuardedBus | None = None
         self._nodes: list[canopen.RemoteNode] = []
         self._rpdo: list[PdoMap] = []
         self._rpdo_cob: list[int] = []
+        self._rpdo2_cob: list[int] = []
         self._hb_task: Any = None
         self._cond = threading.Condition()
         self._hb_time = [-math.inf] * self._n
@@ -194,14 +228,12 @@ class CanopenBase:
         if self._network is not None:
             return
         co = self._co
-        net = canopen.Network()
+        bus = open_bus(co, FaultCause.BASE_LINK, connect_timeout=co.sdo_timeout * 4)
+        net = canopen.Network(bus)
         net.NOTIFIER_CYCLE = _NOTIFIER_CYCLE
-        check_link(co, co.sdo_timeout * 4)
-        try:
-            net.connect(**bus_options(co))
-        except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise TransportError(f"cannot open CAN bus {describe(co)}: {exc}") from exc
+        net.connect()
         self._network = net
+        self._bus = bus
         self._reset_state()
         try:
             self._nodes = []
@@ -214,7 +246,9 @@ class CanopenBase:
             self._raise_errors(_parallel(self._probe_one, self._n), "does not answer")
             self._raise_errors(_parallel(self._configure_one, self._n), "cannot be configured")
             self._rpdo = [node.rpdo[1] for node in self._nodes]
-            self._rpdo_cob = [_rpdo1_cob_id(pdo) for pdo in self._rpdo]
+            self._rpdo_cob = [_rpdo_cob_id(pdo, ds.TARGET_VELOCITY, 32) for pdo in self._rpdo]
+            self._rpdo2_cob = [_rpdo_cob_id(node.rpdo[2], ds.CONTROLWORD, 16)
+                               for node in self._nodes]
             for node in self._nodes:
                 node.nmt.state = "OPERATIONAL"
             self._wait_operational(range(self._n))
@@ -225,6 +259,33 @@ class CanopenBase:
             raise
         self._odo.reset(time.monotonic())
         log.info("base_connected", transport="canopen", channel=co.channel, node_ids=self._ids)
+
+    def reconnect(self) -> None:
+        """Bring a lost link back: release what is left of the old network (no I/O on a
+        dead link), then :meth:`connect` again (every drive probed and configured by
+        SDO, NMT OPERATIONAL, our heartbeat) and :meth:`disable` (waiting: a drive found
+        still in OPERATION ENABLED ramps to rest before its power stage opens), so the
+        drives are left disabled; :meth:`enable` arms them.  Does nothing while the
+        link works (idempotent).  Blocks up to the SDO and stop timeouts: not for the
+        loop thread.
+
+        Raises :class:`~mmctl.errors.LinkLost` (cause ``base_link_lost``) naming the
+        channel while the channel or the drives do not answer."""
+        bus = self._bus
+        if self._network is not None and bus is not None and bus.lost is None:
+            return
+        self._teardown()
+        try:
+            self.connect()
+            self.disable()
+        except LinkLost:
+            self._teardown()
+            raise
+        except TransportError as exc:
+            self._teardown()
+            raise LinkLost(describe(self._co), FaultCause.BASE_LINK,
+                           f"reconnect failed: {exc}") from exc
+        log.info("base_reconnected", transport="canopen", channel=self._co.channel)
 
     def enable(self) -> None:
         """Bring every drive to OPERATION ENABLED, each step checked on 0x6041.
@@ -272,7 +333,7 @@ class CanopenBase:
     def stop(self) -> None:
         """Zero target velocity on every drive (RPDOs + SYNC); the drives slow down on
         their profile deceleration 0x6084.  Never waits (the loop thread calls it in the
-        cycle that detects a fault)."""
+        cycle that detects a fault): frames only; LinkLost at once on a lost link."""
         if self._network is not None:
             self._send_wheels(_ZERO)
 
@@ -292,19 +353,25 @@ class CanopenBase:
         wheel speed limit the ramp takes <= 1.15 s), plus the SDO time of a silent drive
         (``sdo_timeout``, retried once).  Raises TransportError naming the drives that
         did not answer or are still turning then; a drive is never forced off while its
-        wheel turns.  ``wait=False`` (the loop thread stopping the robot): the SHUTDOWN
-        SDOs only, each drive ramps down by itself; a silent drive still costs its SDO
-        timeout."""
+        wheel turns.  ``wait=False`` (the loop thread stopping the robot): frames only,
+        never an SDO (see the module doc): zero targets, then SHUTDOWN in RPDO2 to each
+        drive not already stopping by itself (by its last TPDO2 statusword); each drive
+        ramps down by itself.  Raises LinkLost at once on a lost link."""
         if self._network is None:
             return
         self._enabled = False
         t0 = time.monotonic()
+        if not wait:
+            self._send_wheels(_ZERO)
+            self._send_shutdowns()
+            return
         try:
             self._send_wheels(_ZERO)
+        except LinkLost:
+            raise
         except TransportError as exc:  # the SDOs below may still get through
             log.warning("base_disable_zero_target_failed", error=str(exc))
-        results = _parallel(lambda i: self._disable_one(i, wait), self._n, self._keep_zero,
-                            self._keepalive)
+        results = _parallel(self._disable_one, self._n, self._keep_zero, self._keepalive)
         self._raise_errors(results, "cannot be disabled")
         log.info("base_disabled", transport="canopen",
                  waited_ms=round((time.monotonic() - t0) * 1e3, 1))
@@ -431,6 +498,9 @@ class CanopenBase:
     def _require_connected(self) -> None:
         if self._network is None:
             raise TransportError("base is not connected (call connect() first)")
+        bus = self._bus
+        if bus is not None and bus.lost is not None:
+            bus.check()
 
     def _send_wheels(self, wheels: Sequence[float] | np.ndarray) -> None:
         net = self._network
@@ -450,12 +520,32 @@ class CanopenBase:
             raise SafetyFault(FaultCause.NON_FINITE, wheels=[float(w) for w in wheels],
                               why="wheel speed beyond INTEGER32 counts/s") from None
 
+    def _send_shutdowns(self) -> None:
+        """SHUTDOWN as RPDO2 (controlword) to every drive whose last statusword does not
+        show it stopping by itself; frames only, answered by nothing."""
+        net = self._network
+        if net is None:
+            raise TransportError("base is not connected (call connect() first)")
+        frame = _CONTROL.pack(ds.Controlword.SHUTDOWN)
+        try:
+            for cob, sw in zip(self._rpdo2_cob, self._statusword):
+                if ds.decode_statusword(sw) not in _STOPPING:
+                    net.send_message(cob, frame)
+        except (can.CanError, RuntimeError) as exc:
+            raise TransportError(f"CAN send failed on {self._co.channel!r}: {exc}") from exc
+        log.info("base_shutdown_sent", transport="canopen", via="rpdo2")
+
     def _health(self) -> SafetyFault | None:
+        bus = self._bus
+        if bus is not None and bus.lost is not None:
+            bus.check()
         if self._fault is not None:
             return self._fault
         net = self._network
         if net is not None and net.notifier is not None and net.notifier.exception is not None:
-            raise TransportError(f"CAN receive thread died: {net.notifier.exception!r}")
+            assert bus is not None
+            bus.fail(net.notifier.exception, "the receive thread")
+            bus.check()
         now = time.monotonic()
         timeout = self._co.heartbeat_timeout
         fault = None
@@ -532,7 +622,7 @@ class CanopenBase:
         sdo[ds.TARGET_VELOCITY].raw = 0
         layout: tuple[tuple[PdoMap, int, int, tuple[int, ...], int | None], ...] = (
             (node.rpdo[1], 0x200, 1, (ds.TARGET_VELOCITY,), self._watchdog_ms),
-            (node.rpdo[2], 0x300, 0, (), None),
+            (node.rpdo[2], 0x300, 255, (ds.CONTROLWORD,), 0),
             (node.tpdo[1], 0x180, 1, (ds.POSITION_ACTUAL, ds.VELOCITY_ACTUAL), None),
             (node.tpdo[2], 0x280, 255, (ds.STATUSWORD,), None),
         )
@@ -572,11 +662,13 @@ class CanopenBase:
         want = [*self._settings,
                 (ds.RPDO1_COMMUNICATION, ds.EVENT_TIMER_SUBINDEX, self._watchdog_ms),
                 (ds.RPDO1_COMMUNICATION, 1, 0x200 + self._ids[i]),
-                (0x1600, 0, 1), (0x1600, 1, ds.TARGET_VELOCITY << 16 | 32)]
+                (0x1600, 0, 1), (0x1600, 1, ds.TARGET_VELOCITY << 16 | 32),
+                (0x1401, 1, 0x300 + self._ids[i]),
+                (0x1601, 0, 1), (0x1601, 1, ds.CONTROLWORD << 16 | 16)]
         wrong = []
         for index, sub, value in want:
             got = int(self._entry(i, index, sub).raw)
-            if index == ds.RPDO1_COMMUNICATION and sub == 1:
+            if index in (ds.RPDO1_COMMUNICATION, 0x1401) and sub == 1:
                 got &= 0xBFFF_FFFF  # the RTR bit is not ours to set
             if got != value:
                 wrong.append(f"0x{index:04X}:{sub:02X} = {got}, wrote {value}")
@@ -673,16 +765,13 @@ class CanopenBase:
                         f"controlword 0x{int(cw):04X}, expected {want.value}")
         self._statusword[i] = sw
 
-    def _disable_one(self, i: int, wait: bool = True) -> None:
-        """SHUTDOWN (unless the drive stops by itself already), then (``wait``) wait
-        until its power stage is off (at most stop_timeout)."""
+    def _disable_one(self, i: int) -> None:
+        """SHUTDOWN by SDO (unless the drive stops by itself already), then wait until
+        its power stage is off (at most stop_timeout)."""
         nid, sdo = self._ids[i], self._nodes[i].sdo
         state = ds.decode_statusword(sdo[ds.STATUSWORD].raw)
-        if state not in (ds.Cia402State.QUICK_STOP_ACTIVE, ds.Cia402State.FAULT_REACTION_ACTIVE,
-                         ds.Cia402State.FAULT):
+        if state not in _STOPPING:
             sdo[ds.CONTROLWORD].raw = ds.Controlword.SHUTDOWN
-        if not wait:
-            return
         sw, state = self._wait_state(i, _SETTLED, self._co.stop_timeout, _REST_POLL)
         self._statusword[i] = sw
         if state in _MOVING:
@@ -727,18 +816,24 @@ class CanopenBase:
 
     def _teardown(self) -> None:
         net, self._network = self._network, None
+        bus, self._bus = self._bus, None
         self._enabled = False
         if net is None:
             return
         if self._hb_task is not None:
             self._hb_task.stop()
             self._hb_task = None
+        if bus is None or bus.lost is None:
+            try:
+                for node in self._nodes:
+                    node.nmt.state = "PRE-OPERATIONAL"
+            except (can.CanError, RuntimeError, MmctlError) as exc:
+                log.warning("base_nmt_preop_failed", error=str(exc))
         try:
-            for node in self._nodes:
-                node.nmt.state = "PRE-OPERATIONAL"
-        except (can.CanError, RuntimeError) as exc:
-            log.warning("base_nmt_preop_failed", error=str(exc))
-        net.disconnect()
+            net.disconnect()
+        except Exception as exc:  # noqa: BLE001 - canopen re-raises a dead receive thread's
+            log.warning("base_disconnect_failed", error=f"{type(exc).__name__}: {exc}")
         self._nodes = []
         self._rpdo = []
         self._rpdo_cob = []
+        self._rpdo2_cob = []

@@ -79,8 +79,8 @@ import numpy as np
 import structlog
 
 from mmctl.config.sensor import SensorCanConfig
-from mmctl.errors import FaultCause, ProtocolError, SafetyFault, TransportError
-from mmctl.transports.canbus import bus_options, check_link, describe
+from mmctl.errors import FaultCause, LinkLost, ProtocolError, SafetyFault, TransportError
+from mmctl.transports.canbus import GuardedBus, describe, open_bus
 from mmctl.transports.sensor.protocol import SensorStats
 from mmctl.types import Vec, Wrench
 
@@ -217,7 +217,8 @@ class CanForceSensor:
         self._id_g0 = frame_id(cfg.base_id, OP_GAUGES)
         self._id_g1 = frame_id(cfg.base_id, OP_GAUGES_2)
         self._request = can.Message(arbitration_id=self._id_g0, data=b"", is_extended_id=False)
-        self._bus: can.BusABC | None = None
+        self._bus: GuardedBus | None = None
+        self._resync = False  # a malformed reply: drop what is queued before asking again
         self._conv = np.zeros((6, 6))
         self._calibration = np.zeros((6, 6))
         self._counts = (0, 0)
@@ -252,14 +253,10 @@ class CanForceSensor:
         if self._bus is not None:
             return
         cfg = self._cfg
-        check_link(cfg, cfg.connect_timeout)
-        try:
-            self._bus = can.Bus(
-                **bus_options(cfg),
-                can_filters=[{"can_id": cfg.base_id << 4, "can_mask": _ID_MASK, "extended": False}],
-            )
-        except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise TransportError(f"cannot open CAN bus {describe(cfg)}: {exc}") from exc
+        self._bus = open_bus(
+            cfg, FaultCause.SENSOR_LINK, connect_timeout=cfg.connect_timeout,
+            can_filters=[{"can_id": cfg.base_id << 4, "can_mask": _ID_MASK, "extended": False}],
+        )
         try:
             decode_units(self._transact(OP_UNITS, b"", 1)[0])
             cpf, cpt = decode_counts(self._transact(OP_COUNTS, b"", 1)[0])
@@ -269,6 +266,8 @@ class CanForceSensor:
             self._conv = conversion_matrix(rows, cpf, cpt)
             self._seq = self._lost = 0
             self._pending = None
+            self._caller_paced = False
+            self._resync = False
             self._first = None
             self._last = None
             first = self._read_sync(cfg.connect_timeout)
@@ -278,6 +277,26 @@ class CanForceSensor:
         self._last = first
         log.info("sensor_connected", transport="can", link=self.link,
                  counts_per_force=cpf, counts_per_torque=cpt)
+
+    def reconnect(self) -> None:
+        """Bring a lost link back: close what is left of it (no I/O on it) and connect
+        again (units, counts per unit, matrix, a first sample).  Does nothing while the
+        link works (idempotent).  Raises :class:`~mmctl.errors.LinkLost` (a
+        TransportError, cause ``sensor_link_lost``) naming the link while the sensor or
+        its CAN channel does not answer; SafetyFault as :meth:`connect` (status bits
+        in the first sample)."""
+        bus = self._bus
+        if bus is not None and bus.lost is None:
+            return
+        self.close()
+        try:
+            self.connect()
+        except LinkLost:
+            raise
+        except TransportError as exc:
+            raise LinkLost(self.link, FaultCause.SENSOR_LINK,
+                           f"reconnect failed: {exc}") from exc
+        log.info("sensor_reconnected", transport="can", link=self.link)
 
     def close(self) -> None:
         """Shut the bus down; safe to call twice."""
@@ -298,8 +317,11 @@ class CanForceSensor:
 
     def read(self) -> Wrench:
         """The newest wrench [N, N m] in the sensor frame (pipelined, see module doc)."""
-        if self._bus is None:
+        bus = self._bus
+        if bus is None:
             raise TransportError(f"CAN F/T sensor {self.link} is not connected")
+        if bus.lost is not None:
+            bus.check()
         now = time.monotonic()
         if self._pending is None or now - self._pending > self._timeout:
             self._discard_queued()
@@ -332,10 +354,15 @@ class CanForceSensor:
         instead of during its compute.  ``read()`` alone still works: with no request
         in flight it sends one and waits for the reply.
         """
-        if self._bus is None:
+        bus = self._bus
+        if bus is None:
             raise TransportError(f"CAN F/T sensor {self.link} is not connected")
+        if bus.lost is not None:
+            bus.check()
         self._caller_paced = True
         if self._pending is None:
+            if self._resync:
+                self._discard_queued()
             self._send_request(time.monotonic())
 
     def _accept(self, sample: tuple[int, Vec]) -> Wrench:
@@ -364,20 +391,22 @@ class CanForceSensor:
         return self._accept(sample)
 
     def _send(self, msg: can.Message) -> None:
-        try:
-            self._bus.send(msg)  # type: ignore[union-attr]
-        except can.CanError as exc:
-            raise TransportError(f"CAN send to {self.link} failed: {exc}") from exc
+        """Raises LinkLost (a TransportError) when the link fails (GuardedBus)."""
+        self._bus.send(msg)  # type: ignore[union-attr]
 
     def _send_request(self, now: float) -> None:
         self._send(self._request)
         self._pending = now
 
     def _recv(self, timeout: float) -> can.Message | None:
-        try:
-            return self._bus.recv(timeout)  # type: ignore[union-attr]
-        except can.CanError as exc:
-            raise TransportError(f"CAN receive from {self.link} failed: {exc}") from exc
+        """The next frame or None; raises LinkLost when the link failed (GuardedBus
+        records the failure and returns None)."""
+        bus = self._bus
+        assert bus is not None
+        msg = bus.recv(timeout)
+        if msg is None and bus.lost is not None:
+            bus.check()
+        return msg
 
     def _discard_queued(self) -> None:
         """Drop what is queued: the requests in flight are abandoned.  The rest of an
@@ -388,6 +417,7 @@ class CanForceSensor:
             pass
         self._first = None
         self._tail_expected = True
+        self._resync = False
 
     def _collect(self, deadline: float) -> tuple[int, Vec] | None:
         """Wait until ``deadline`` for a complete gauge reply, then take the newest queued."""
@@ -403,8 +433,12 @@ class CanForceSensor:
                     newest = got
                 timeout = 0.0 if newest is not None else max(0.0, deadline - time.monotonic())
         except ProtocolError:
+            # garbage costs this sample only: what is queued behind the bad frame (more
+            # of it, replies to abandoned requests) goes now, and whatever comes before
+            # the next request is sent goes then (read() or request_next())
             self._pending = None
-            self._first = None
+            self._discard_queued()
+            self._resync = True
             raise
 
     def _feed(self, msg: can.Message) -> tuple[int, Vec] | None:
