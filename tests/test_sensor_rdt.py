@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from structlog.testing import capture_logs
 
 from mmctl.config import default_config
-from mmctl.errors import FaultCause, ProtocolError, SafetyFault, TransportError
+from mmctl.errors import FaultCause, LinkLost, ProtocolError, SafetyFault, TransportError
 from mmctl.sim.fake_rdt import FakeRdtServer
 from mmctl.sim.wrench_source import ConstantWrench
 from mmctl.transports.sensor.rdt import (
@@ -436,3 +436,33 @@ def test_fuzz_client_against_random_datagrams(peer: Peer) -> None:
         feed()
     finally:
         sensor.close()
+
+
+def test_link_lost_then_reconnected() -> None:
+    """The sensor goes away (nothing listens: the restart request is refused): the read
+    raises LinkLost naming the link, reconnect() fails while nothing answers, and opens a
+    new stream once the sensor is back (issue 28, point 4)."""
+    fake = FakeRdtServer(ConstantWrench([1, 2, 3, 0.1, 0.2, 0.3]), rate_hz=500.0).start()
+    host, port = fake.address
+    sensor = RdtForceSensor(rdt_cfg(host, port, connect_timeout=0.3, restart_after=0.01),
+                            stale_timeout=1e6)
+    try:
+        sensor.connect()
+        sensor.reconnect()  # the link works: nothing to do
+        assert fake.starts == 1
+        fake.stop()
+        deadline = time.monotonic() + WAIT
+        with pytest.raises(LinkLost) as lost:
+            while time.monotonic() < deadline:
+                sensor.read()
+                time.sleep(0.002)
+        assert lost.value.cause is FaultCause.SENSOR_LINK and sensor.link in str(lost.value)
+        with pytest.raises(LinkLost, match="reconnect failed"):
+            sensor.reconnect()
+        fake = FakeRdtServer(ConstantWrench([1, 2, 3, 0.1, 0.2, 0.3]), host=host, port=port,
+                             rate_hz=500.0).start()
+        sensor.reconnect()
+        assert sensor.read().force[2] == pytest.approx(3.0)
+    finally:
+        sensor.close()
+        fake.stop()

@@ -12,7 +12,7 @@ import pytest
 
 from mmctl.config import Config, config_from_dict
 from mmctl.control.mecanum import wheel_matrix
-from mmctl.errors import FaultCause, SafetyFault, TransportError
+from mmctl.errors import FaultCause, LinkLost, SafetyFault, TransportError
 from mmctl.sim.fake_serial_bridge import FakeSerialBridge
 from mmctl.transports.base.serial_base import SerialBase
 from mmctl.types import Odometry
@@ -191,3 +191,26 @@ def test_port_that_does_not_exist() -> None:
     cfg = config_from_dict({})
     with pytest.raises(TransportError, match="cannot open serial port '/nonexistent/tty'"):
         SerialBase(cfg.base, cfg.limits, port="/nonexistent/tty").connect()
+
+
+def test_port_gone_is_link_lost_until_reconnect(cfg: Config) -> None:
+    """The bridge's port disappears under the running base (a USB adapter pulled):
+    LinkLost naming the port from every call, and from reconnect() while the port is
+    gone (issue 28, point 4)."""
+    with FakeSerialBridge(cfg) as bridge:
+        base = SerialBase(cfg.base, cfg.limits, port=bridge.port)
+        base.connect()
+        base.reconnect()  # the link works: nothing to do
+        base.enable()
+        cycles(base, (0.1, 0.0, 0.0), 5)
+    try:
+        with pytest.raises(LinkLost) as lost:
+            cycles(base, (0.1, 0.0, 0.0), 5)
+        assert lost.value.cause is FaultCause.BASE_LINK and base.port in str(lost.value)
+        for call in (base.stop, base.disable, base.read_odometry):
+            with pytest.raises(LinkLost):
+                call()
+        with pytest.raises(LinkLost, match="reconnect failed"):
+            base.reconnect()
+    finally:
+        base.close()

@@ -49,6 +49,13 @@ class LinkLost(TransportError):
         text = reason if link in reason else f"{link}: {reason}"
         super().__init__(f"{text} [{self.cause.value}]")
 
+    @classmethod
+    def wrap(cls, link: str, cause: FaultCause | str, what: str, exc: BaseException
+             ) -> LinkLost:
+        """``what`` failed with ``exc`` (its reason, if it is a LinkLost itself)."""
+        reason = exc.reason if isinstance(exc, LinkLost) else str(exc)
+        return cls(link, cause, f"{what}: {reason}")
+
 
 class ProtocolError(TransportError):
     """Bytes arrived that do not follow the wire protocol (bad length, CRC, opcode...)."""

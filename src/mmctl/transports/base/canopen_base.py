@@ -278,13 +278,10 @@ class CanopenBase:
         try:
             self.connect()
             self.disable()
-        except LinkLost:
-            self._teardown()
-            raise
         except TransportError as exc:
             self._teardown()
-            raise LinkLost(describe(self._co), FaultCause.BASE_LINK,
-                           f"reconnect failed: {exc}") from exc
+            raise LinkLost.wrap(describe(self._co), FaultCause.BASE_LINK,
+                                "reconnect failed", exc) from exc
         log.info("base_reconnected", transport="canopen", channel=self._co.channel)
 
     def enable(self) -> None:
@@ -367,8 +364,6 @@ class CanopenBase:
             return
         try:
             self._send_wheels(_ZERO)
-        except LinkLost:
-            raise
         except TransportError as exc:  # the SDOs below may still get through
             log.warning("base_disable_zero_target_failed", error=str(exc))
         results = _parallel(self._disable_one, self._n, self._keep_zero, self._keepalive)

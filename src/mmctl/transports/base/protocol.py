@@ -21,6 +21,14 @@ before raising.  :meth:`Base.stop` and :meth:`Base.disable` never raise SafetyFa
 (they are the fault reaction); they raise :class:`mmctl.errors.TransportError` when
 the link itself fails.  A non-finite twist sends zero and raises
 ``SafetyFault(FaultCause.NON_FINITE)``.
+
+A link that fails under a connected base (an exception of the client library: a closed
+socketcand connection, a CAN adapter or serial port gone) raises
+:class:`mmctl.errors.LinkLost` (a TransportError with ``cause = FaultCause.BASE_LINK``
+and the ``link``) from every call, at once and without waiting, until
+:meth:`Base.reconnect` succeeds; one warning event (``base_link_lost``) per loss; no
+helper thread dies.  :meth:`Base.stop` and ``disable(wait=False)`` only send frames
+(never wait for an answer), so neither blocks on a silent bus.
 """
 
 from __future__ import annotations
@@ -65,6 +73,11 @@ class Base(Protocol):
         Raises TransportError naming the channel/port and addresses when nothing
         answers."""
 
+    def reconnect(self) -> None:
+        """After a lost link: release what is left, connect again and leave the drives
+        disabled (enable() arms them); no-op while the link works.  Raises LinkLost
+        naming the link while it does not answer.  Blocks: never on the loop thread."""
+
     def enable(self) -> None:
         """Reset drive faults, then power the drives (CiA 402 OPERATION ENABLED)."""
 
@@ -87,7 +100,8 @@ class Base(Protocol):
     def disable(self, wait: bool = True) -> None:
         """Command zero, then take the drives out of OPERATION ENABLED, each bringing its
         wheel to rest before its power stage goes off.  ``wait``: block until they have
-        (bounded); False: only send the commands (the loop thread, in a stop)."""
+        (bounded); False: only send the commands, frames only, never waiting for an
+        answer (the loop thread, in a stop)."""
 
     def close(self) -> None:
         """Stop, disable (best effort) and release the link.  Safe to call twice."""

@@ -8,7 +8,9 @@ period when idle), which :meth:`SerialBase.read_odometry` integrates.
 
 Faults (raised as SafetyFault from ``send_twist``, ``read_odometry`` and ``check``):
 no valid frame for ``base.serial.link_timeout`` -> ``BASE_LINK``; the bridge reports
-FAULT, or a wheel not enabled, while enabled -> ``DRIVE_FAULT``.
+FAULT, or a wheel not enabled, while enabled -> ``DRIVE_FAULT``.  A read or write that
+fails (the USB adapter unplugged) raises :class:`~mmctl.errors.LinkLost` (cause
+``base_link_lost``) until :meth:`SerialBase.reconnect` opens the port again.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import structlog
 
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig
-from mmctl.errors import FaultCause, MmctlError, SafetyFault, TransportError
+from mmctl.errors import FaultCause, LinkLost, MmctlError, SafetyFault, TransportError
 from mmctl.transports.base import serial_protocol as sp
 from mmctl.transports.base.kinematics import OdometryIntegrator, WheelCommand, wrap_delta
 from mmctl.transports.base.protocol import WHEEL_NAMES, DriveStatus
@@ -64,6 +66,7 @@ class SerialBase:
         self._last_fault: tuple[int, int] = (0, 0xFF)  # from the last FAULT frame
         self._enabled = False
         self._fault: SafetyFault | None = None
+        self._failed = False  # a read or write failed (LinkLost): reconnect() reopens
 
     @property
     def stats(self) -> sp.LinkStats:
@@ -87,6 +90,7 @@ class SerialBase:
         self._decoder = sp.FrameDecoder()
         self._state, self._prev_pos, self._fault, self._enabled = None, None, None, False
         self._last_rx = -math.inf
+        self._failed = False
         try:
             if not self._request(sp.MsgType.HEARTBEAT, lambda s: True):
                 raise TransportError(
@@ -97,6 +101,23 @@ class SerialBase:
             raise
         self._odo.reset(self._last_rx)
         log.info("base_connected", transport="serial", port=self.port)
+
+    def reconnect(self) -> None:
+        """After a failed read or write (LinkLost): close the port, connect again
+        (HEARTBEAT answered) and send DISABLE, so the bridge is left disabled.  Does
+        nothing while the link works (idempotent).  Raises LinkLost (cause
+        ``base_link_lost``) naming the port while the bridge does not answer."""
+        if self._ser is not None and not self._failed:
+            return
+        self._release()
+        try:
+            self.connect()
+            self.disable()
+        except TransportError as exc:
+            self._release()
+            raise LinkLost.wrap(self.port, FaultCause.BASE_LINK,
+                                "reconnect failed", exc) from exc
+        log.info("base_reconnected", transport="serial", port=self.port)
 
     def enable(self) -> None:
         """ENABLE (which also resets bridge faults); wait until every wheel reports
@@ -222,20 +243,24 @@ class SerialBase:
         ser = self._ser
         if ser is None:
             raise TransportError("base is not connected (call connect() first)")
+        if self._failed:
+            raise self._lost("the link failed earlier: reconnect()")
         self._seq = (self._seq + 1) & 0xFFFF
         try:
             ser.write(sp.encode_frame(self._seq, msg_type, payload))
         except (serial.SerialException, OSError) as exc:
-            raise TransportError(f"serial write to {self.port!r} failed: {exc}") from exc
+            raise self._lost(f"serial write to {self.port!r} failed: {exc}") from exc
 
     def _poll(self) -> None:
         ser = self._ser
         assert ser is not None
+        if self._failed:
+            raise self._lost("the link failed earlier: reconnect()")
         try:
             n = ser.in_waiting
             data = ser.read(n) if n else b""
         except (serial.SerialException, OSError) as exc:
-            raise TransportError(f"serial read from {self.port!r} failed: {exc}") from exc
+            raise self._lost(f"serial read from {self.port!r} failed: {exc}") from exc
         if not data:
             return
         now = time.monotonic()
@@ -253,6 +278,13 @@ class SerialBase:
                 self._decoder.stats.malformed += 1
                 continue
             self._last_rx = now
+
+    def _lost(self, reason: str) -> LinkLost:
+        """The link failed: remember it for reconnect(); the error to raise."""
+        if not self._failed:
+            log.warning(FaultCause.BASE_LINK.value, link=self.port, error=reason)
+        self._failed = True
+        return LinkLost(self.port, FaultCause.BASE_LINK, reason)
 
     def _on_state(self, s: sp.WheelState, now: float) -> None:
         self._state = s

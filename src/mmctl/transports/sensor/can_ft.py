@@ -291,11 +291,9 @@ class CanForceSensor:
         self.close()
         try:
             self.connect()
-        except LinkLost:
-            raise
         except TransportError as exc:
-            raise LinkLost(self.link, FaultCause.SENSOR_LINK,
-                           f"reconnect failed: {exc}") from exc
+            raise LinkLost.wrap(self.link, FaultCause.SENSOR_LINK,
+                                "reconnect failed", exc) from exc
         log.info("sensor_reconnected", transport="can", link=self.link)
 
     def close(self) -> None:

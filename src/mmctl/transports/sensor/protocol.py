@@ -11,6 +11,16 @@ Error contract shared by all transports:
   ``FaultCause.SENSOR_STALE`` when no new sample arrived for longer than the
   configured ``sensor.wrench.stale_timeout``; ``ProtocolError`` on malformed frames;
   ``TransportError`` when the link itself fails or the sensor is not connected.
+* A link that fails under a connected sensor (an exception of the client library: a
+  closed socketcand connection, a CAN adapter gone, a socket error) raises
+  :class:`~mmctl.errors.LinkLost` (a ``TransportError`` with ``cause =
+  FaultCause.SENSOR_LINK`` and the ``link``) from that call and from every later one,
+  at once and without I/O, until ``reconnect()`` succeeds.  One warning event
+  (``sensor_link_lost``) is logged per loss; no helper thread dies.
+* ``reconnect()`` does nothing while the link works; after a loss it closes what is
+  left and connects again (what ``connect()`` reads, read again), raising ``LinkLost``
+  naming the link while the sensor does not answer.  It blocks (up to the connect
+  timeouts): never on the loop thread.
   Until a sample is stale, a ``read()`` that got nothing new returns the previous
   sample again (same ``sequence``, same ``timestamp``).
 * ``close()`` is idempotent; the context manager connects on entry and closes on exit.
@@ -57,6 +67,9 @@ class ForceSensor(Protocol):
 
     def read(self) -> Wrench:
         """The newest sample: force [N], torque [N m] in the sensor frame. Cheap (500 Hz)."""
+
+    def reconnect(self) -> None:
+        """After a lost link: connect again (see the module doc); no-op while it works."""
 
     def close(self) -> None:
         """Release the link; safe to call twice."""

@@ -64,7 +64,7 @@ import numpy as np
 import structlog
 
 from mmctl.config.sensor import SensorRdtConfig
-from mmctl.errors import FaultCause, ProtocolError, SafetyFault, TransportError
+from mmctl.errors import FaultCause, LinkLost, ProtocolError, SafetyFault, TransportError
 from mmctl.runtime.logging import RateLimiter
 from mmctl.transports.sensor.protocol import SensorStats
 from mmctl.types import Wrench
@@ -207,6 +207,7 @@ class RdtForceSensor:
         self._attempts = 0  # ... in the current silence
         self._restart_next = 0.0
         self._log_limit = RateLimiter(1.0)  # rdt_sequence_reset lines
+        self._failed = False  # a send or receive failed (LinkLost): reconnect() reopens
 
     @property
     def link(self) -> str:
@@ -226,6 +227,7 @@ class RdtForceSensor:
         except OSError as exc:
             raise TransportError(f"cannot open {self.link}: {exc}") from exc
         self._sock = sock
+        self._failed = False
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
             sock.connect(addr)  # only the sensor's datagrams; ICMP errors become exceptions
@@ -242,6 +244,21 @@ class RdtForceSensor:
             raise
         log.info("sensor_connected", transport="rdt", link=self.link,
                  counts_per_force=cfg.counts_per_force, counts_per_torque=cfg.counts_per_torque)
+
+    def reconnect(self) -> None:
+        """After a failed link (a send or receive error: LinkLost): close the socket and
+        connect again (new socket, start streaming, first record).  Does nothing while
+        the link works (idempotent).  Raises LinkLost (cause ``sensor_link_lost``)
+        naming the link while the sensor does not answer."""
+        if self._sock is not None and not self._failed:
+            return
+        self.close()
+        try:
+            self.connect()
+        except TransportError as exc:
+            raise LinkLost.wrap(self.link, FaultCause.SENSOR_LINK,
+                                "reconnect failed", exc) from exc
+        log.info("sensor_reconnected", transport="rdt", link=self.link)
 
     def close(self) -> None:
         """Stop streaming (best effort) and close the socket; safe to call twice."""
@@ -292,7 +309,14 @@ class RdtForceSensor:
         try:
             self._sock.send(encode_request(command))  # type: ignore[union-attr]
         except OSError as exc:
-            raise TransportError(f"cannot send to {self.link}: {exc}") from exc
+            raise self._lost(f"cannot send: {exc}") from exc
+
+    def _lost(self, reason: str) -> LinkLost:
+        """The link failed: remember it for reconnect(); the error to raise."""
+        if not self._failed:
+            log.warning(FaultCause.SENSOR_LINK.value, link=self.link, error=reason)
+        self._failed = True
+        return LinkLost(self.link, FaultCause.SENSOR_LINK, reason)
 
     def _restart(self, now: float, age: float) -> None:
         """The stream fell silent: send the start request again (never raises: a silent
@@ -323,9 +347,9 @@ class RdtForceSensor:
             except BlockingIOError:
                 break
             except ConnectionRefusedError as exc:
-                raise TransportError(f"nothing answers at {self.link} (connection refused)") from exc
+                raise self._lost(f"nothing answers at {self.link} (connection refused)") from exc
             except OSError as exc:
-                raise TransportError(f"receive from {self.link} failed: {exc}") from exc
+                raise self._lost(f"receive failed: {exc}") from exc
             if n != RECORD_SIZE:
                 raise ProtocolError(f"RDT datagram of {n} bytes from {self.link}, expected 36")
             (seq,) = _SEQ.unpack_from(buf, 0)
