@@ -64,6 +64,17 @@ A request that gets no complete reply within ``timeout`` counts as lost and is s
 again at once; the previous sample is returned again until the newest one is older than
 ``sensor.wrench.stale_timeout``, then ``SafetyFault(SENSOR_STALE)`` is raised.  A read
 blocks at most ``timeout`` (only while replies are missing).
+
+Garbage costs the current sample only: a malformed reply raises ``ProtocolError`` after
+everything queued behind it is dropped, and the next request (``read()`` or
+:meth:`CanForceSensor.request_next`) drops what came in between before it goes out, so
+once the garbage stops the first or second read is fresh (a queue of stale bad frames
+used to be consumed one per cycle: 1.6-16.5 s before a re-arm).
+
+A lost link (the CAN channel fails: socketcand connection closed, adapter gone;
+:class:`~mmctl.transports.canbus.GuardedBus`) raises
+:class:`~mmctl.errors.LinkLost` (cause ``sensor_link_lost``) from every call, at once,
+until :meth:`CanForceSensor.reconnect` succeeds.
 """
 
 from __future__ import annotations
