@@ -377,7 +377,7 @@ class CanopenBase:
         if self._network is None:
             return
         try:
-            if self._enabled:
+            if self._enabled and (self._bus is None or self._bus.lost is None):
                 self.stop()
                 self.disable()
         except MmctlError as exc:
