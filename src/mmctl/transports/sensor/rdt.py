@@ -309,10 +309,13 @@ class RdtForceSensor:
         try:
             self._sock.send(encode_request(command))  # type: ignore[union-attr]
         except OSError as exc:
-            raise self._lost(f"cannot send: {exc}") from exc
+            raise self._lost(f"cannot send to {self.link}: {exc}") from exc
 
-    def _lost(self, reason: str) -> LinkLost:
-        """The link failed: remember it for reconnect(); the error to raise."""
+    def _lost(self, reason: str) -> TransportError:
+        """The link failed: remember it for reconnect(); the error to raise (LinkLost
+        once a record came, a plain TransportError while connect() waits for one)."""
+        if self._last is None:
+            return TransportError(reason)
         if not self._failed:
             log.warning(FaultCause.SENSOR_LINK.value, link=self.link, error=reason)
         self._failed = True
@@ -349,7 +352,7 @@ class RdtForceSensor:
             except ConnectionRefusedError as exc:
                 raise self._lost(f"nothing answers at {self.link} (connection refused)") from exc
             except OSError as exc:
-                raise self._lost(f"receive failed: {exc}") from exc
+                raise self._lost(f"receive from {self.link} failed: {exc}") from exc
             if n != RECORD_SIZE:
                 raise ProtocolError(f"RDT datagram of {n} bytes from {self.link}, expected 36")
             (seq,) = _SEQ.unpack_from(buf, 0)
