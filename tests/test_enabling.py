@@ -1,20 +1,23 @@
 """The enabling (hold-to-run) switch: released, the armed robot comes to rest on the
 acceleration limits and stays still; held again, it starts from rest (no jump); two
-contacts that disagree too long are a fault.  The controller and the switch's reader
-here; the daemon's cycle on scripted devices in ``test_fault_matrix.py``; the simulated
+contacts that disagree too long are a fault.  The controller and the update's reading
+of the switch here; the daemon's cycle on scripted devices in ``test_fault_matrix.py``; the simulated
 robot's own inputs through RTDE in ``test_sim_process.py``."""
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
 
 from mmctl.config import config_from_dict, default_config
+from mmctl.control.cycle import CycleChain
 from mmctl.control.step import Controller, StepInputs
-from mmctl.errors import ConfigError, FaultCause, SafetyFault
-from mmctl.runtime.devices import EnablingSwitch
+from mmctl.control.update import Readings, Update, UpdateState
+from mmctl.errors import ConfigError, FaultCause
+from mmctl.types import ArmState
 
 T = 0.002
 PUSH = np.array([25.0, 10.0, 0.0, 0.0, 0.0, 0.0])  # [N] a firm push: arm and base move
@@ -68,50 +71,54 @@ def test_released_the_robot_comes_to_rest_on_the_limits_and_starts_again_from_re
     assert np.all(np.abs(out.qdot) <= acc * (1 + 1e-9))
 
 
-class Inputs:
-    """A UR's digital inputs as the arm transport reports them."""
+def _enabling(inputs: tuple[int, ...], active_low: bool = False) -> tuple[Update, UpdateState]:
+    cfg = config_from_dict({"enabling": {"inputs": list(inputs), "active_low": active_low,
+                                         "discrepancy_time": 0.05}})
+    update = Update(cfg, CycleChain(cfg))
+    return update, update.initial_state()
 
-    def __init__(self) -> None:
-        self.bits = 0
 
-    def set(self, index: int, on: bool) -> None:
-        self.bits = self.bits | (1 << index) if on else self.bits & ~(1 << index)
-
-    def digital_input(self, index: int) -> bool:
-        return bool((self.bits >> index) & 1)
+def _read(update: Update, s: UpdateState, bits: int, now: float
+          ) -> tuple[UpdateState, bool, dict[FaultCause, Any]]:
+    """The update's enabling part on one arm sample's inputs: (state, held, conditions)."""
+    conditions: dict[FaultCause, Any] = {}
+    arm = ArmState(np.zeros(6), np.zeros(6), now, 2, 1)
+    r = Readings(0, now, T, arm, None, None, bits)
+    s, held = update._enabling(s, r, conditions)
+    return s, held, conditions
 
 
 def test_one_contact_and_its_polarity() -> None:
-    io = Inputs()
-    sw = EnablingSwitch(io, (17,), active_low=False, discrepancy_time=0.05)
-    assert sw.held(0.0) is False and sw.last is False
-    io.set(17, True)
-    assert sw.held(0.1) is True and sw.last is True
-    low = EnablingSwitch(io, (17,), active_low=True, discrepancy_time=0.05)
-    assert low.held(0.2) is False
-    io.set(17, False)
-    assert low.held(0.3) is True
+    up, s = _enabling((17,))
+    s, held, _ = _read(up, s, 0, 0.0)
+    assert held is False and s.enabling.held is False
+    s, held, _ = _read(up, s, 1 << 17, 0.1)
+    assert held is True and s.enabling.held is True
+    low, ls = _enabling((17,), active_low=True)
+    assert _read(low, ls, 1 << 17, 0.2)[1] is False
+    assert _read(low, ls, 0, 0.3)[1] is True
 
 
 def test_two_contacts_must_agree_within_the_discrepancy_time() -> None:
-    io = Inputs()
-    sw = EnablingSwitch(io, (8, 9), active_low=False, discrepancy_time=0.05)
-    io.set(8, True)  # the first contact closes, the second follows within 50 ms
-    assert sw.held(1.0) is False and sw.last is None
-    assert sw.held(1.04) is False
-    io.set(9, True)
-    assert sw.held(1.045) is True
-    io.set(9, False)  # a broken wire on the second channel
-    assert sw.held(2.0) is False
-    assert sw.held(2.05) is False  # 50 ms: still within the time
-    with pytest.raises(SafetyFault) as err:
-        sw.held(2.0501)
-    assert err.value.cause is FaultCause.ENABLING_DEVICE
-    assert err.value.details["inputs"] == [8, 9] and err.value.details["levels"] == [1, 0]
-    with pytest.raises(SafetyFault):
-        sw.held(3.0)  # as long as they disagree
-    io.set(8, False)  # both released: agree again
-    assert sw.held(3.1) is False and sw.last is False
+    up, s = _enabling((8, 9))
+    s, held, c = _read(up, s, 1 << 8, 1.0)  # the first closes, the second follows in 50 ms
+    assert held is False and s.enabling.held is None and not c
+    s, held, c = _read(up, s, 1 << 8, 1.04)
+    assert held is False and not c
+    s, held, c = _read(up, s, (1 << 8) | (1 << 9), 1.045)
+    assert held is True and not c
+    s, held, c = _read(up, s, 1 << 8, 2.0)  # a broken wire on the second channel
+    assert held is False and not c
+    s, held, c = _read(up, s, 1 << 8, 2.05)  # 50 ms: still within the time
+    assert not c
+    s, held, c = _read(up, s, 1 << 8, 2.0501)
+    assert held is False and set(c) == {FaultCause.ENABLING_DEVICE}
+    assert c[FaultCause.ENABLING_DEVICE]["inputs"] == [8, 9]
+    assert c[FaultCause.ENABLING_DEVICE]["levels"] == [1, 0]
+    s, held, c = _read(up, s, 1 << 8, 3.0)  # as long as they disagree
+    assert FaultCause.ENABLING_DEVICE in c
+    s, held, c = _read(up, s, 0, 3.1)  # both released: agree again
+    assert held is False and s.enabling.held is False and not c
 
 
 @pytest.mark.parametrize("bad, message", [

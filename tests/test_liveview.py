@@ -29,10 +29,12 @@ from mmctl.runtime.liveview import LiveView, render
 FULL = {
     "state": "armed", "mode": "min-energy", "fault": None, "taring": False,
     "f_h": [12.34, -0.4, 1.0, 0.01, 0.0, -0.02],
-    "ee_speed": 0.0823, "base_speed": 0.004, "base_yaw_rate": -0.05,
+    "ee_speed": 0.0823, "base_speed": 0.004, "base_yaw_rate": -0.05, "ee_speed_desired": 0.09,
     "energy_arm": 0.412, "energy_base": 0.003,
     "loop": {"rate_hz": 500.0, "compute_p50_us": 180.2, "compute_p99_us": 290.4,
-             "latency_p99_us": 22.1, "miss_rate": 0.0012, "total_misses": 7},
+             "latency_p99_us": 22.1, "window_s": 5.0,
+             "misses": {"window": 3, "window_pct": 0.12, "since_start": 7,
+                        "since_start_pct": 0.114}},
     "cycles": 6150, "uptime_s": 12.3,
     "sim": {"person": "on", "faults": []},
     "hint": "mmctl sim push 20 0 0 · mmctl sim fault drive_fault · Ctrl-C stops",
@@ -54,10 +56,11 @@ def test_render_full_snapshot_shows_every_value_with_its_unit() -> None:
     assert "-0.05 rad/s" in text
     assert "arm 0.412 J" in text and "base 0.003 J" in text and "base share 0.7 %" in text
     assert "500 Hz" in text and "p50/p99 180/290 us" in text and "wake p99 22 us" in text
-    assert "misses 0.12 % (7)" in text
+    assert "over the last 5 s" in text and "(measured; desired 0.090 m/s)" in text
+    assert "misses 0.12 % of the last 5 s (3), 7 since start (0.11 %)" in text
     assert "person on" in text and "faults -" in text
     assert lines[-1].endswith("mmctl sim push 20 0 0 · mmctl sim fault drive_fault · Ctrl-C stops")
-    assert 6 <= len(lines) <= 8
+    assert 7 <= len(lines) <= 9
     assert all(len(line) <= 100 for line in lines)
 
 
@@ -67,7 +70,7 @@ def test_render_empty_snapshot_shows_dashes_and_no_sim_or_hint_line() -> None:
     assert "cycles -" in lines[0] and "up -" in lines[0]
     assert not any(line.startswith(("sim", "hint")) for line in lines)
     assert "fx      -" in lines[1] and "end-effector - m/s" in lines[2]
-    assert "misses - % (-)" in lines[4]
+    assert "misses - % of the last - s (-), - since start (- %)" in lines[5]
 
 
 def test_render_none_nan_and_odd_types_show_dashes_and_never_raise() -> None:
@@ -290,7 +293,7 @@ def test_log_lines_scroll_above_the_block_in_order_and_whole() -> None:
     # the final block, printed once, below everything logged while the view ran
     assert block[0].startswith("mmctl ─ ARMED") and block[-1] == "hint    Ctrl-C stops"
     assert [line.split()[0] for line in block[1:-1]] == [
-        "force", "speed", "energy", "loop"]
+        "force", "speed", "energy", "loop", "misses"]
     assert sum(line.startswith("mmctl ─") for line in lines) == 1
     assert after == ["after stop isatty=True", "straight to the terminal"]
     assert all(len(line) < 100 for line in block)

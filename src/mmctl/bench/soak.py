@@ -421,12 +421,12 @@ class Soak:
 
         r = request(self.sock, cmd, timeout=timeout, **params)
         if isinstance(r, dict):
-            n = (r.get("loop") or {}).get("total_misses")
+            n = ((r.get("loop") or {}).get("misses") or {}).get("since_start")
             if isinstance(n, int):
                 with self._lock:
                     last = self._misses_seen
-                    if last is not None:  # the counter restarts at each enable
-                        self.misses += n - last if n >= last else n
+                    if last is not None:  # (never reset: the daemon's since its start)
+                        self.misses += max(n - last, 0)
                     self._misses_seen = n
         return r
 

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 from mmctl.runtime.client import add_client_arguments, call, summary
+from mmctl.runtime.liveview import misses_text
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -26,11 +28,15 @@ def run(args: argparse.Namespace) -> int:
     print(f"loop: {loop.get('rate_hz')} Hz, {st.get('cycles')} cycles, "
           f"compute p99 {loop.get('compute_p99_us')} us, "
           f"wake latency p99 {loop.get('latency_p99_us')} us, "
-          f"misses {loop.get('total_misses')} (rate {loop.get('miss_rate')})")
+          f"{misses_text(loop)}")
     robot = st.get("robot")
     if robot:
-        print(f"end-effector: {robot['ee_position']} m, v_d {robot['v_d'][:3]} m/s, "
-              f"f_h {robot['f_h'][:3]} N, E_K {robot['energy_J']} J")
+        desired = robot.get("desired") or {}
+        print(f"end-effector: {robot['ee_position']} m, measured "
+              f"{_or_unknown(robot.get('ee_speed_m_s'))} m/s (desired "
+              f"{desired.get('ee_speed_m_s')} m/s), base {_or_unknown(robot.get('base_speed_m_s'))}"
+              f" m/s, f_h {robot['f_h'][:3]} N, E_K {_or_unknown(robot.get('energy_J'))} J "
+              "(measured)")
     caps = st.get("caps")
     if caps:
         limit = (robot or {}).get("limit") or "none"
@@ -45,3 +51,8 @@ def run(args: argparse.Namespace) -> int:
     if st.get("fault_details"):
         print(f"fault details: {st['fault_details']}")
     return 0
+
+
+def _or_unknown(v: Any) -> str:
+    """A measured figure, or why there is none (the newest cycles could not read a device)."""
+    return "unknown" if v is None else str(v)

@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from mmctl.config import Config
-from mmctl.control.energy import Energy
+from mmctl.control.energy import Energy, kinetic_energy
 from mmctl.control.step import Controller, ControllerState, StepInputs, StepOutputs
 from mmctl.control.wrench import WrenchProcessor, WrenchState
 from mmctl.errors import FaultCause
@@ -45,10 +45,12 @@ class CycleResult(NamedTuple):
     v_d: (6,) admittance twist; qd_cmd: (9,) command; qd_arm: (6,) speedJ [rad/s];
     twist: (3,) base command (vx, vy [m/s], wz [rad/s]), times the arm's speed
     scaling; p, p_des: (3,) tool position
-    and FK(q_des) in the world [m]; energy: E_K from measured velocities [J];
+    and FK(q_des) in the world [m]; energy: E_K from the measured velocities [J] (also
+    when the controller did not run: a robot coasting to rest has energy);
     fault: SPEC §5 cause found by the pure chain (None = fine); fault_details: for the
     fault event; taring: a tare is running; out: the controller's outputs (None when
-    it did not run).
+    it did not run); v: (6,) the measured end-effector twist J(q) q̇ in the control frame
+    [m/s, rad/s] (zero at rest).
     """
 
     q: Vec
@@ -65,6 +67,7 @@ class CycleResult(NamedTuple):
     fault_details: dict[str, Any]
     taring: bool
     out: StepOutputs | None
+    v: Vec = _Z6
 
 
 class CycleState(NamedTuple):
@@ -157,7 +160,7 @@ class CycleChain:
         twist = out.base_twist if scaling >= 1.0 else max(scaling, 0.0) * out.base_twist
         return state, CycleResult(q, qd, w.f_h, out.v_d, out.qdot, out.qdot_arm,
                                   twist, out.p, out.p_des, out.energy, None, {},
-                                  False, out)
+                                  False, out, out.v)
 
     def condition(self, q: Vec) -> float:
         """Condition number of J J^T at ``q`` (the controller's singularity measure)."""
@@ -169,10 +172,15 @@ class CycleChain:
         """Not commanding: controller held at rest; positions for status/telemetry."""
         if state.controller.cycle or state.controller.v.any():
             state = self.at_rest(state)
+        v, energy = _Z6, _ZERO_E
         if math.isfinite(float(q @ q)):
             p = self.model.position(q)
             p_des = self.controller.p_des(q)
+            if qd.any() and math.isfinite(float(qd @ qd)):  # moving: what it measures
+                kin = self.model.update(q)
+                v = kin.J @ qd
+                energy = kinetic_energy(kin.M_a, kin.M_b, qd)
         else:
             p = p_des = _Z3
-        return state, CycleResult(q, qd, f_h, _Z6, _Z9, _Z6, _Z3, p, p_des, _ZERO_E, fault,
-                                  dict(details), taring, None)
+        return state, CycleResult(q, qd, f_h, _Z6, _Z9, _Z6, _Z3, p, p_des, energy, fault,
+                                  dict(details), taring, None, v)

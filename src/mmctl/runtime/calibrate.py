@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import structlog
 
+from mmctl.control import safety as sm
 from mmctl.control.calibration import (
     Plan,
     ToolCalibration,
@@ -38,6 +39,7 @@ from mmctl.control.calibration import (
 )
 from mmctl.errors import MmctlError
 from mmctl.runtime.core import CycleResult
+from mmctl.runtime.safety import log_events
 from mmctl.types import Wrench
 
 log = structlog.get_logger("mmctl.daemon")
@@ -112,7 +114,7 @@ class CalibrationCommands(_Parts):
                              "the handle")
         if self.core.taring:
             raise MmctlError("refused to calibrate: a tare is in progress")
-        if self._arm_repeats >= self.cfg.arm.hold_cycles:
+        if self.ustate.arm_repeats >= self.cfg.arm.hold_cycles:
             raise MmctlError("refused to calibrate: the arm's samples are not coming in")
         joint = float(np.abs(last.qd[:6]).max())
         base = float(np.hypot(last.qd[6], last.qd[7]))
@@ -160,7 +162,10 @@ class CalibrationCommands(_Parts):
 
     def _calibration_stop(self, c: ToolCalibration) -> None:
         """Loop thread: an aborted routine: speedStop, zero base velocity, disarmed."""
-        if self.safety.disable():
+        safety, stop, events = sm.disable(self.ustate.safety)
+        self.ustate = self.ustate._replace(safety=safety)
+        log_events(events, self._limiter)
+        if stop:
             self._send_stop()
         c.closed = True
         log.warning("calibration_aborted", reason=c.error, pose=c.index + 1,

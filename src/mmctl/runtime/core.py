@@ -105,6 +105,13 @@ class ControlCore:
         self.chain.controller = controller
         self.controller = controller
 
+    def installed(self, cfg: Config, controller: Controller, key: str) -> None:
+        """The update installed ``controller`` for ``cfg`` (``key`` changed): the core's
+        view of it (:attr:`cfg`, :attr:`controller`, :attr:`changed`)."""
+        self.changed[key] = get_value(cfg, key)
+        self.cfg = cfg
+        self.controller = controller
+
     @property
     def taring(self) -> bool:
         return self.wstate.tare_left > 0
@@ -151,19 +158,12 @@ class ControlCore:
         place: the loop's telemetry hot path, one numpy call.
 
         The row holds what the cycle has at hand (world-frame positions; the consumer
-        derives the base frame and the wheel speeds); ``v`` is the step's own J(q) q̇ (no
-        second Jacobian on the loop), or J(q) q̇ from the measured velocities when the
-        controller did not run (0 without a Jacobian when they are all 0).
+        derives the base frame and the wheel speeds); ``v`` is the measured J(q) q̇ the
+        cycle computed (:attr:`CycleResult.v`).
         """
         q = r.q
         mode = self.mode if self.mode != "switch" else f"switch/{self.switch}"
-        if r.out is not None:
-            v = r.out.v
-        elif not r.qd.any():  # standing still (disarmed, stopped): J(q) 0 is 0, no Jacobian
-            v = _Z6
-        else:
-            jac = self.model.jacobian(q) if math.isfinite(float(q @ q)) else np.zeros((6, 9))
-            v = jac @ r.qd
+        v = r.v
         e = r.energy
         out = r.out
         limit = (tr.limit_code(out.limit), out.scale) if out is not None else _NO_LIMIT

@@ -43,10 +43,13 @@ import numpy as np
 import structlog
 
 from mmctl.config import Config
+from mmctl.control import safety as sm
+from mmctl.control.safety import Safety
+from mmctl.control.update import Readings, Update, UpdateState
 from mmctl.errors import FaultCause, MmctlError
 from mmctl.runtime.calibrate import CalibrationCommands
 from mmctl.runtime.core import ControlCore, CycleResult
-from mmctl.runtime.devices import Devices, enabling_switch
+from mmctl.runtime.devices import Devices
 from mmctl.runtime.ipc import ControlServer, Handler
 from mmctl.runtime.ipc_process import ProcessControlServer
 from mmctl.runtime.logging import RateLimiter
@@ -61,7 +64,7 @@ from mmctl.runtime.driver import PHASES, CycleDriver
 from mmctl.runtime.notify import Notifier
 from mmctl.runtime.operator import OperatorCommands
 from mmctl.runtime.pmqos import CpuLatencyRequest
-from mmctl.runtime.safety import SafetyMonitor, SafetyState
+from mmctl.runtime.safety import SafetyState, log_events
 from mmctl.runtime.timing import TimingRing
 
 log = structlog.get_logger("mmctl.daemon")
@@ -86,6 +89,11 @@ STOP_SIGNALS = tuple(getattr(signal, name) for name in (
 STATUS_MAX_AGE = 0.1
 #: [s] the longest the loop's timing figures in ``status`` (5 s percentiles) are reused
 STATS_MAX_AGE = 1.0
+#: [s] the window of the loop's timing figures and window miss rate (status, live view)
+STATS_WINDOW = 5.0
+#: [cycles] the oldest a cycle's measured motion may be and still be shown as now (a
+#: device not read since: shown as unknown, never as the motion it last had)
+MEASURED_MAX_AGE = 5
 
 
 def _control_server(cfg: Config, path: Path, handler: Handler) -> ControlServer | ProcessControlServer:
@@ -129,10 +137,17 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
                  loop_wait: Wait | None = None):
         self.cfg = cfg
         self.devices = devices
-        if devices.enabling is None:
-            devices.enabling = enabling_switch(cfg, devices.arm)
         self.core = core
-        self.safety = SafetyMonitor()
+        #: the pure update (every per-cycle decision) and the state it hands on
+        self.update = Update(cfg, core.chain)
+        self.ustate: UpdateState = self.update.initial_state()
+        #: [commands] the most the update takes from the inbox in one cycle
+        self.inbox_size = 16
+        #: the arm's digital inputs a cycle reads: the enabling contacts, the button
+        self._inputs = tuple(cfg.enabling.inputs) + (
+            (cfg.daemon.switch_input,) if cfg.daemon.switch_input >= 0 else ())
+        #: the last cycle's readings (None: no cycle yet)
+        self.readings: Readings | None = None
         self.notifier = notifier if notifier is not None else Notifier()
         self.sim = sim
         self.telemetry = telemetry
@@ -161,8 +176,7 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         self._snapshot: tuple[float, tuple[Any, ...], dict[str, Any]] | None = None
         self._snapshot_lock = threading.RLock()  # (status() in it asks for loop_stats)
         self._loop_stats: tuple[float, dict[str, Any]] | None = None
-        self._commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = (
-            queue.SimpleQueue())
+        self._commands: queue.SimpleQueue[tuple[Any, Future[Any]]] = queue.SimpleQueue()
         self._stop_requested = threading.Event()
         self._param_lock = threading.Lock()  # `mmctl set`: one change at a time
         self._healthy_cycle = threading.Event()
@@ -170,17 +184,13 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         self.sample_hook: SampleHook | None = None
         self.cycles = 0
         self.last: CycleResult | None = None
+        #: the cycle that produced :attr:`last`
+        self.last_cycle = 0
         self.last_conditions: dict[FaultCause, dict[str, Any]] = {}
-        self._button_was = False
         self._arm_busy = False
         """An arm reconnect runs off the loop thread (set and cleared around it): the
         loop then leaves the arm alone and counts it as disconnected."""
         self._arm_reconnect = threading.Lock()
-        self.speed_scaling = 1.0
-        self._arm_time = math.nan
-        self._arm_repeats = 0
-        """Cycles in a row whose arm sample carried the same controller time."""
-        """The arm's speed scaling in the last sample (speed slider x reduced mode)."""
         self._base_busy = False
         """The base's enable runs off the loop thread (it waits for SDO answers and for
         a wheel still ramping down): the loop then leaves the base alone."""
@@ -199,14 +209,22 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         self._sensor_request: Callable[[], None] | None = getattr(
             devices.sensor, "request_next", None)
         self._request_at_start = cfg.loop.sensor_request == "start"
-        #: the newest base twist sent (None: none since the last stop)
-        self._twist_sent: tuple[float, float, float] | None = None
         #: the newest tool-load calibration (`mmctl calibrate tool`) and its fit
         self.calibration: ToolCalibration | None = None
         self.calibration_fit: ToolLoadFit | None = None
         self._planner: RobotModel | None = None
         self._planner_lock = threading.Lock()
         self._handlers = self._command_table()
+
+    @property
+    def safety(self) -> Safety:
+        """The safety state machine's value as the last cycle left it."""
+        return self.ustate.safety
+
+    @property
+    def speed_scaling(self) -> float:
+        """The arm's speed scaling in the last sample (speed slider x reduced mode)."""
+        return self.ustate.speed_scaling
 
     # ------------------------------------------------------------------ lifecycle --
     def open(self) -> None:
@@ -298,8 +316,10 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         if self.devices.connected:
             self.devices.stop(self.cfg.arm.stop_deceleration, arm=not self._arm_busy)
             self.commands_sent["stop"] += 1
-            if self.safety.state is SafetyState.ARMED:
-                self.safety.disable()
+            if self.safety.state is SafetyState.ARMED:  # (the loop has ended)
+                safety, _, events = sm.disable(self.safety)
+                self.ustate = self.ustate._replace(safety=safety)
+                log_events(events, self._limiter)
         if enable_done:
             self._base_enable.release()
         if self.server is not None:
@@ -411,7 +431,8 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
             cached = self._loop_stats
             now = time.monotonic()
             if cached is None or now - cached[0] > STATS_MAX_AGE:
-                stats = self.ring.stats(min(self.ring.size, int(self.cfg.loop.rate_hz * 5)))
+                stats = self.ring.stats(min(self.ring.size,
+                                            int(self.cfg.loop.rate_hz * STATS_WINDOW)))
                 cached = self._loop_stats = (now, stats.as_dict())
         return cached[1]
 
@@ -428,16 +449,18 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
             "changed": dict(self.core.changed),
             "cycles": self.cycles,
             "uptime_s": round(time.monotonic() - self._started, 3),
-            "loop": {"rate_hz": self.cfg.loop.rate_hz, "running": self.loop.running,
-                     "total_misses": self.loop.total_misses, **self.loop_stats()},
+            "loop": self._loop_block(self.loop_stats(), running=self.loop.running),
             "commands": dict(self.commands_sent),
             "config": self.cfg.name,
         }
         last = self.last
         if last is not None:
             out["robot"] = {"q": _round(last.q), "ee_position": _round(last.p),
-                            "v_d": _round(last.v_d), "f_h": _round(last.f_h),
-                            "energy_J": round(float(last.energy.total), 6),
+                            "f_h": _round(last.f_h),
+                            **self._measured(last),
+                            "desired": {"v_d": _round(last.v_d),
+                                        "ee_speed_m_s": round(float(
+                                            np.linalg.norm(last.v_d[:3])), 4)},
                             "speed_scaling": round(float(self.speed_scaling), 4),
                             "limit": last.out.limit if last.out is not None else ""}
         if self.calibration is not None:
@@ -458,33 +481,62 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         return out
 
 
+    def _loop_block(self, stats: dict[str, Any], **extra: Any) -> dict[str, Any]:
+        """The loop's figures as status and the live view show them: timing over the
+        last :data:`STATS_WINDOW` s, and misses with one definition (deadlines missed /
+        (cycles run + deadlines missed)), over that window and since the start."""
+        loop = self.loop
+        since = loop.missed_since_start
+        return {"rate_hz": self.cfg.loop.rate_hz, **extra, **stats,
+                "window_s": STATS_WINDOW,
+                "misses": {"window": stats.get("missed", 0),
+                           "window_pct": round(100.0 * float(stats.get("miss_rate", 0.0)), 3),
+                           "since_start": since,
+                           "since_start_pct": round(100.0 * since / max(loop.cycles + since, 1),
+                                                    3)},
+                "budget_misses": loop.total_misses}
+
+    def _measured(self, last: CycleResult) -> dict[str, Any]:
+        """The robot's motion as measured (end-effector and base speed, E_K from the
+        measured velocities; zero at rest), or None where the newest cycle could not
+        read a device (``measured_age_cycles`` says how old the numbers are)."""
+        age = self.cycles - self.last_cycle
+        if age > MEASURED_MAX_AGE:
+            return {"ee_speed_m_s": None, "base_speed_m_s": None, "base_yaw_rate": None,
+                    "energy_J": None, "energy_arm_J": None, "energy_base_J": None,
+                    "measured_age_cycles": age}
+        return {"ee_speed_m_s": round(float(np.linalg.norm(last.v[:3])), 4),
+                "base_speed_m_s": round(float(np.hypot(last.qd[6], last.qd[7])), 4),
+                "base_yaw_rate": round(float(last.qd[8]), 4),
+                "energy_J": round(float(last.energy.total), 6),
+                "energy_arm_J": round(float(last.energy.arm), 6),
+                "energy_base_J": round(float(last.energy.base), 6),
+                "measured_age_cycles": age}
+
     def enabling_state(self) -> str | None:
         """The enabling switch as the last cycle read it: "held", "released",
         "disagree" (its contacts differ), or None (no enabling switch configured)."""
-        switch = self.devices.enabling
-        if switch is None:
+        if not self.cfg.enabling.inputs:
             return None
-        return {True: "held", False: "released", None: "disagree"}[switch.last]
+        return {True: "held", False: "released", None: "disagree"}[self.ustate.enabling.held]
 
     def live(self) -> dict[str, Any]:
         """The live terminal view's snapshot (:mod:`mmctl.runtime.liveview`; any thread,
         a few times a second: the last second of loop timing, the newest cycle)."""
-        stats = self.ring.stats(min(self.ring.size, int(self.cfg.loop.rate_hz)))
         out: dict[str, Any] = {
             "state": self.safety.state.value, "mode": self.core.mode,
             "fault": self.safety.as_dict().get("fault"), "taring": self.core.taring,
             "enabling": self.enabling_state(),
             "cycles": self.cycles, "uptime_s": time.monotonic() - self._started,
-            "loop": {"rate_hz": self.cfg.loop.rate_hz, "total_misses": self.loop.total_misses,
-                     **stats.as_dict()},
+            "loop": self._loop_block(self.loop_stats()),
         }
         last = self.last
         if last is not None:
-            out.update(f_h=[float(x) for x in last.f_h],
-                       ee_speed=float(np.linalg.norm(last.v_d[:3])),
-                       base_speed=float(np.hypot(last.qd[6], last.qd[7])),
-                       base_yaw_rate=float(last.qd[8]),
-                       energy_arm=float(last.energy.arm), energy_base=float(last.energy.base))
+            m = self._measured(last)
+            out.update(f_h=[float(x) for x in last.f_h], ee_speed=m["ee_speed_m_s"],
+                       base_speed=m["base_speed_m_s"], base_yaw_rate=m["base_yaw_rate"],
+                       energy_arm=m["energy_arm_J"], energy_base=m["energy_base_J"],
+                       ee_speed_desired=float(np.linalg.norm(last.v_d[:3])))
         if self.sim is not None and self.sim.closed:
             out["sim"] = {"person": "stopped"}
         elif self.sim is not None:

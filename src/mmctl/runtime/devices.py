@@ -10,12 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING
 
 import structlog
 
 from mmctl.config import Config
-from mmctl.errors import FaultCause, MmctlError, SafetyFault
+from mmctl.errors import MmctlError
 
 if TYPE_CHECKING:
     from mmctl.transports.arm import Arm
@@ -25,72 +25,14 @@ if TYPE_CHECKING:
 log = structlog.get_logger("mmctl.devices")
 
 
-class Button(Protocol):
-    """A digital input: the handle button that toggles switch mode."""
-
-    def pressed(self) -> bool: ...
-
-
-class ArmDigitalInput:
-    """A UR digital input read through the arm transport's ``digital_input(index)``."""
-
-    def __init__(self, arm: Any, index: int):
-        self._arm = arm
-        self.index = index
-
-    def pressed(self) -> bool:
-        return bool(self._arm.digital_input(self.index))
-
-
-class EnablingSwitch:
-    """The enabling (hold-to-run) switch's contacts, read from the arm's newest sample
-    (``Arm.digital_input``; see :class:`~mmctl.config.runtime.EnablingConfig`).
-
-    :meth:`held` in every cycle, after the arm's read: True while every contact reads
-    held; contacts that disagree for longer than ``discrepancy_time`` raise
-    SafetyFault(ENABLING_DEVICE) (released meanwhile), and keep raising until they
-    agree again."""
-
-    def __init__(self, arm: Any, inputs: tuple[int, ...], active_low: bool,
-                 discrepancy_time: float):
-        self._arm = arm
-        self.inputs = tuple(inputs)
-        self._held_level = not active_low
-        self.discrepancy_time = discrepancy_time
-        self._disagree_since: float | None = None
-        self.last: bool | None = None
-        """The last reading (None: not read yet, or the contacts disagree)."""
-
-    def held(self, now: float) -> bool:
-        """Whether the switch is held at ``now`` [s] (monotonic clock)."""
-        levels = [bool(self._arm.digital_input(i)) for i in self.inputs]
-        held = [lvl == self._held_level for lvl in levels]
-        if all(held) or not any(held):
-            self._disagree_since = None
-            self.last = held[0]
-            return self.last
-        self.last = None
-        if self._disagree_since is None:
-            self._disagree_since = now
-        apart = now - self._disagree_since
-        if apart > self.discrepancy_time:
-            raise SafetyFault(FaultCause.ENABLING_DEVICE, inputs=list(self.inputs),
-                              levels=[int(v) for v in levels],
-                              disagree_for=round(apart, 4),
-                              why="the switch's contacts disagree (a broken wire or a "
-                                  "welded contact)")
-        return False
-
-
 @dataclass
 class Devices:
-    """Arm, sensor, base (and an optional handle button), connected and closed together."""
+    """Arm, sensor, base, connected and closed together (the handle's button and the
+    enabling switch are digital inputs of the arm's samples, read by the update)."""
 
     arm: Arm
     sensor: ForceSensor
     base: Base
-    button: Button | None = None
-    enabling: EnablingSwitch | None = None
     connected: list[str] = field(default_factory=list)
 
     def connect(self) -> None:
@@ -141,7 +83,7 @@ class Devices:
         self.connected.clear()
 
 
-def open_devices(cfg: Config, button: Button | None = None) -> Devices:
+def open_devices(cfg: Config) -> Devices:
     """The real transports for ``cfg`` (not yet connected)."""
     from mmctl.runtime import logging as mmctl_logging
     from mmctl.transports.base import open_base
@@ -150,15 +92,4 @@ def open_devices(cfg: Config, button: Button | None = None) -> Devices:
 
     # ur_rtde in a process of its own: its crashes, hangs and GIL-holding calls stay there
     arm = UrRtdeProcessArm(cfg.arm, cfg.limits, mmctl_logging.CURRENT)
-    if button is None and cfg.daemon.switch_input >= 0:
-        button = ArmDigitalInput(arm, cfg.daemon.switch_input)
-    return Devices(arm=arm, sensor=open_sensor(cfg.sensor), base=open_base(cfg),
-                   button=button, enabling=enabling_switch(cfg, arm))
-
-
-def enabling_switch(cfg: Config, arm: Any) -> EnablingSwitch | None:
-    """The enabling switch ``cfg.enabling`` describes, on ``arm``'s inputs (None: none)."""
-    e = cfg.enabling
-    if not e.inputs:
-        return None
-    return EnablingSwitch(arm, e.inputs, e.active_low, e.discrepancy_time)
+    return Devices(arm=arm, sensor=open_sensor(cfg.sensor), base=open_base(cfg))

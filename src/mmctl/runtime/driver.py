@@ -1,20 +1,46 @@
-"""The cycle driver: one control period on the loop thread (:meth:`CycleDriver.cycle`):
-queued operator commands, the device reads (timed per device, :data:`PHASES`), the pure
-control cycle, the safety monitor, the telemetry hook, the motion or stop commands.  A
-part of :class:`~mmctl.runtime.daemon.Daemon`."""
+"""The cycle driver: one control period on the loop thread is read -> update -> write.
+
+- :meth:`CycleDriver._read` copies the devices' newest samples (timed per device,
+  :data:`PHASES`) and the conditions their reads raised into
+  :class:`~mmctl.control.update.Readings`;
+- :class:`~mmctl.control.update.Update` (pure) makes every per-cycle decision: the
+  operator's commands taken from the inbox, the button, the arm hold, the enabling
+  switch, the control chain, the safety latch, the commands;
+- :meth:`CycleDriver._write` sends the commands (a command that fails stops the robot at
+  once, and its condition reaches the next update), then the events are logged and the
+  inbox's replies handed to the waiting callers.
+
+A part of :class:`~mmctl.runtime.daemon.Daemon`.
+"""
 
 from __future__ import annotations
 
 import queue
 import time
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from typing import TYPE_CHECKING, Any, NamedTuple
 
+import numpy as np
 import structlog
 
+from mmctl.control import safety as sm
+from mmctl.control.safety import ConditionsChanged, FaultRaised, StateChanged
+from mmctl.control.update import (
+    BeginEnable,
+    Changed,
+    Command,
+    Commands,
+    EnableCheck,
+    EnableFinish,
+    Install,
+    Readings,
+    Reply,
+    Switched,
+)
 from mmctl.errors import FaultCause, MmctlError, SafetyFault, TransportError
-from mmctl.runtime.core import CycleResult
 from mmctl.runtime.loop import Tick
+from mmctl.runtime.safety import log_events
 
 log = structlog.get_logger("mmctl.daemon")
 
@@ -24,11 +50,22 @@ _LINK_CAUSE = {"arm": FaultCause.ARM_DISCONNECTED, "sensor": FaultCause.SENSOR_L
 #: The device phases of a cycle timed in :attr:`Daemon.phase_ns` (rows, in this order).
 PHASES = ("arm_read", "sensor_read", "base_read", "arm_send", "base_send", "sensor_request")
 
+_Z3 = np.zeros(3)
+SAFETY_EVENTS = (FaultRaised, StateChanged, ConditionsChanged)
 
 if TYPE_CHECKING:
     from mmctl.runtime.parts import DaemonParts as _Parts
 else:
     _Parts = object
+
+Conditions = dict[FaultCause, Mapping[str, Any]]
+
+
+class RunOnLoop(NamedTuple):
+    """A runtime-side operation run on the loop thread before the update (a trial's
+    telemetry hook, a tool-load calibration's start or abort): not a control decision."""
+
+    fn: Callable[[], Any]
 
 
 class CycleDriver(_Parts):
@@ -42,16 +79,23 @@ class CycleDriver(_Parts):
 
     def cycle(self, tick: Tick) -> None:
         """One control period (loop thread)."""
+        inbox: list[tuple[Command, Future[Any]]] = []
         try:
-            self._drain_commands()
-            self._cycle(tick)
+            inbox = self._take_inbox()
+            self._cycle(tick, inbox)
         except Exception as exc:  # any bug in a cycle: stop the robot, log, go on
             # a condition like any other: enable is refused while cycles keep failing
-            failed = {FaultCause.INTERNAL: {"error": repr(exc)}}
-            self.last_conditions = failed
-            if self.safety.update(failed):
+            state = self.ustate
+            safety, stop, events = sm.observe(state.safety,
+                                              {FaultCause.INTERNAL: {"error": repr(exc)}})
+            self.ustate = state._replace(safety=safety)
+            log_events(events, self._limiter)
+            if stop:
                 self._send_stop()
                 self._update_status()
+            for _, fut in inbox:  # never left waiting
+                if not fut.done():
+                    fut.set_exception(exc)
             suppressed = self._limiter.allow("cycle_failed")
             if suppressed is not None:
                 log.exception("cycle_failed", error=repr(exc), suppressed=suppressed)
@@ -59,23 +103,31 @@ class CycleDriver(_Parts):
         if self.notifier.watchdog_interval is not None:
             self.notifier.watchdog_tick(tick.wake_ns)
 
-    def _drain_commands(self) -> None:
-        while True:
+    def _take_inbox(self) -> list[tuple[Command, Future[Any]]]:
+        """The update's commands queued since the last cycle (at most ``inbox_size``);
+        the runtime's own (:class:`RunOnLoop`: a trial's hook, a calibration's start or
+        abort) run here, first."""
+        out: list[tuple[Command, Future[Any]]] = []
+        while len(out) < self.inbox_size:
             try:
-                fn, fut = self._commands.get_nowait()
+                cmd, fut = self._commands.get_nowait()
             except queue.Empty:
-                return
+                break
             if not fut.set_running_or_notify_cancel():
                 continue
-            try:
-                fut.set_result(fn())
-            except Exception as exc:  # noqa: BLE001 -- handed to the waiting client
-                fut.set_exception(exc)
-            finally:  # the exception's traceback holds this frame: no cycle through it
-                del fut
+            if isinstance(cmd, RunOnLoop):
+                try:
+                    fut.set_result(cmd.fn())
+                except Exception as exc:  # noqa: BLE001 -- handed to the waiting client
+                    fut.set_exception(exc)
+                finally:  # the exception's traceback holds this frame: no cycle through it
+                    del fut
+                continue
+            out.append((cmd, fut))
+        return out
 
-    def _read(self, name: str, fn: Callable[[], Any],
-              conditions: dict[FaultCause, dict[str, Any]]) -> Any:
+    # -- read ---------------------------------------------------------------------------
+    def _read_one(self, name: str, fn: Any, conditions: Conditions) -> Any:
         try:
             return fn()
         except SafetyFault as exc:
@@ -84,167 +136,140 @@ class CycleDriver(_Parts):
             conditions.setdefault(_LINK_CAUSE[name], {"device": name, "error": str(exc)})
         return None
 
-    def _cycle(self, tick: Tick) -> None:
-        conditions: dict[FaultCause, dict[str, Any]] = {}
+    def _read(self, tick: Tick, row: int) -> Readings:
+        conditions: Conditions = {}
         dev = self.devices
         clock = time.perf_counter_ns
+        phase = self.phase_ns
+        if self._request_at_start:  # the sensor answers while the arm and the base are read
+            self._request_sensor(row)
+        t0 = clock()
+        arm = None
+        inputs = 0
+        if self._arm_busy:
+            conditions[FaultCause.ARM_DISCONNECTED] = {"device": "arm", "why": "reconnecting"}
+        else:
+            arm = self._read_one("arm", dev.arm.read_state, conditions)
+            if arm is not None and self._inputs:
+                try:
+                    for i in self._inputs:
+                        if dev.arm.digital_input(i):
+                            inputs |= 1 << i
+                except (SafetyFault, TransportError) as exc:
+                    conditions.setdefault(FaultCause.ARM_DISCONNECTED,
+                                          {"device": "arm", "error": str(exc)})
+                    arm = None
+        t1 = clock()
+        odom = None if self._base_busy else self._read_one("base", dev.base.read_odometry,
+                                                           conditions)
+        t2 = clock()
+        wrench = self._read_one("sensor", dev.sensor.read, conditions)
+        t3 = clock()
+        phase[0, row], phase[2, row], phase[1, row] = t1 - t0, t2 - t1, t3 - t2
+        calib = self.calibration
+        self.readings = Readings(
+            tick.index, self.core.clock(), tick.period, arm, wrench, odom, inputs, conditions,
+            (tick.consecutive_misses, tick.total_misses) if tick.overrun else None,
+            tick.consecutive_misses, self._arm_busy, calib is not None and calib.running)
+        return self.readings
+
+    # -- the cycle ----------------------------------------------------------------------
+    def _cycle(self, tick: Tick, inbox: list[tuple[Command, Future[Any]]]) -> None:
         row = self.cycles % self.phase_ns.shape[1]
         phase = self.phase_ns
         phase[3, row] = phase[4, row] = phase[5, row] = 0
-        request_first = self._request_at_start
-        if request_first:  # the sensor answers while the arm and the base are read
-            self._request_sensor(row)
-        t0 = clock()
-        if self._arm_busy:
-            conditions[FaultCause.ARM_DISCONNECTED] = {"device": "arm", "why": "reconnecting"}
-            arm = None
-        else:
-            arm = self._read("arm", dev.arm.read_state, conditions)
-        t1 = clock()
-        if self._base_busy:
-            conditions[FaultCause.BASE_LINK] = {"device": "base", "why": "enabling"}
-            odom = None
-        else:
-            odom = self._read("base", dev.base.read_odometry, conditions)
-        t2 = clock()
-        wrench = self._read("sensor", dev.sensor.read, conditions)
-        t3 = clock()
-        phase[0, row], phase[2, row], phase[1, row] = t1 - t0, t2 - t1, t3 - t2
-        if tick.overrun:
-            conditions[FaultCause.LOOP_OVERRUN] = {
-                "consecutive": tick.consecutive_misses, "total": tick.total_misses}
-        self._poll_button()
-        if arm is not None:
-            self.speed_scaling = arm.speed_scaling
-            if arm.controller_time != self._arm_time:
-                self._arm_time, self._arm_repeats = arm.controller_time, 0
-            else:
-                self._arm_repeats += 1
-        # no motion on a pose that is no longer known: after arm.hold_cycles without a
-        # new sample the command decelerates to rest (the stale fault comes later)
-        held = (self._enabling_held(arm is not None, conditions)
-                and self._arm_repeats < self.cfg.arm.hold_cycles)
-        result: CycleResult | None = None
-        # a tool-load calibration moves the arm instead of the controller, which idles
-        # meanwhile (held at rest; every fault check as when disarmed)
+        readings = self._read(tick, row)
+        t0 = time.perf_counter_ns()
+        state, commands, events = self.update(self.ustate, readings, [c for c, _ in inbox])
+        self.step_ns[self.cycles % self.step_ns.shape[0]] = time.perf_counter_ns() - t0
+        if events:  # logged before the new state is seen: a fault seen has its event
+            log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self._limiter)
+        self.ustate = state
+        self.core.cstate = state.chain
+        self.last_conditions = {c: dict(d) for c, d in state.safety.active.items()}
+        result = commands.result
+        if result is not None:  # this cycle's numbers (none: a device was not read)
+            self.last, self.last_cycle = result, self.cycles
         calib = self.calibration
-        if calib is not None and not calib.running:
-            calib = None
-        if arm is not None and wrench is not None and odom is not None:
-            t0 = time.perf_counter_ns()
-            result = self.core.step(arm, wrench, odom, tick.period,
-                                    active=self.safety.armed and calib is None, held=held)
-            self.step_ns[self.cycles % self.step_ns.shape[0]] = time.perf_counter_ns() - t0
-            if result.fault is not None:
-                conditions.setdefault(result.fault, dict(result.fault_details))
-            self.last = result
-        stop_now = self.safety.update(conditions)
-        self.last_conditions = conditions
-        if stop_now:
-            self._send_stop()
-        if calib is not None:
-            result = self._calibration_cycle(
-                calib, result, wrench, self._arm_repeats < self.cfg.arm.hold_cycles)
+        if readings.calibrating and calib is not None:
+            commands = self._calibration_commands(calib, commands, readings)
+            result = commands.result
             if result is not None:
-                self.last = result
+                self.last, self.last_cycle = result, self.cycles
+        if commands.stop:  # never delayed by telemetry
+            self._send_stop()
+            self._update_status()
+            commands = commands._replace(stop=False)
         # telemetry before the motion commands: their CAN frames wake the device threads,
-        # which then want the GIL; a stop above is never delayed by it
+        # which then want the GIL
         hook = self.sample_hook
         if hook is not None and result is not None:
             t0 = time.perf_counter_ns()
             hook(result, tick.index, (tick.deadline_ns - self._t0_ns) * 1e-9,
-                 self.safety.state.value)
+                 self.ustate.safety.state.value)
             self.hook_ns[self.cycles % self.hook_ns.shape[0]] = time.perf_counter_ns() - t0
-        moved = False
-        if not stop_now and self.safety.armed and result is not None:
-            moved = self._send_motion(result, self._base_due(tick.index, result.twist))
-        if not moved and not self._arm_busy:
-            t0 = clock()
-            self._kick_arm_watchdog()
-            phase[3, row] = clock() - t0
-        if not conditions and dev.connected and not self._healthy_cycle.is_set():
+        self._write(commands, row)
+        self._after(events, inbox)
+        if (not state.safety.active and self.devices.connected
+                and not self._healthy_cycle.is_set()):
             self._healthy_cycle.set()  # once: Event.set takes a lock and notifies
-        if stop_now:
-            self._update_status()
-        if not request_first:
+        if not self._request_at_start:
             self._request_sensor(row)
 
-    def _enabling_held(self, arm_read: bool, conditions: dict[FaultCause, dict[str, Any]]
-                       ) -> bool:
-        """Whether the enabling switch is held (True without one); its contacts are read
-        from this cycle's arm sample (none: not held; the arm's own condition says why)."""
-        switch = self.devices.enabling
-        if switch is None:
-            return True
-        if not arm_read:
-            return False
-        try:
-            return switch.held(self.core.clock())
-        except SafetyFault as exc:
-            conditions.setdefault(exc.cause, {"device": "enabling", **exc.details})
-        except TransportError as exc:
-            conditions.setdefault(FaultCause.ARM_DISCONNECTED, {"device": "arm",
-                                                                "error": str(exc)})
-        return False
+    def _calibration_commands(self, calib: Any, c: Commands, r: Readings) -> Commands:
+        """A tool-load calibration's cycle in place of the controller's motion."""
+        result = self._calibration_cycle(calib, c.result, r.wrench,
+                                         self.ustate.arm_repeats < self.cfg.arm.hold_cycles)
+        if c.stop or not self.ustate.safety.armed or result is None or c.result is None:
+            return c._replace(result=result)
+        twist = (0.0, 0.0, 0.0) if self.update._base_due(r.index, (0.0, 0.0, 0.0),
+                                                         self.ustate.twist_sent) else None
+        if twist is not None:
+            self.ustate = self.ustate._replace(twist_sent=twist)
+        return Commands(False, result.qd_arm, twist, False, result)
 
-    def _request_sensor(self, row: int) -> None:
-        """Ask a request/reply sensor for its next sample (``loop.sensor_request``)."""
-        if self._sensor_request is None:
-            return
-        t0 = time.perf_counter_ns()
-        try:
-            self._sensor_request()
-        except TransportError as exc:  # the next read finds no reply: stale, a fault
-            suppressed = self._limiter.allow("sensor_request_failed")
-            if suppressed is not None:
-                log.warning("sensor_request_failed", error=str(exc), suppressed=suppressed)
-        self.phase_ns[5, row] = time.perf_counter_ns() - t0
-
-    def _send_motion(self, r: CycleResult, base: bool = True) -> bool:
-        """speedJ, then (every ``loop.base_divider``-th cycle: ``base``) the base twist
-        (``send_twist`` re-checks the drives and sends zero itself when they fail; the
-        cycle then stops the arm too, before it ends).  Returns whether speedJ went
-        out (it feeds the controller's RTDE watchdog).
-
-        speedJ goes first: the base's RPDOs + SYNC wake the CANopen threads, and a
-        ur_rtde call made while they run waits for the GIL."""
-        dev = self.devices
-        row = self.cycles % self.phase_ns.shape[1]
-        t0 = time.perf_counter_ns()
-        try:
-            dev.arm.speed_j(r.qd_arm, self.cfg.arm.speedj_acceleration, self.period)
-            self.commands_sent["speed_j"] += 1
-            t1 = time.perf_counter_ns()
+    # -- write --------------------------------------------------------------------------
+    def _write(self, c: Commands, row: int) -> None:
+        clock = time.perf_counter_ns
+        if c.stop:
+            self._send_stop()
+            self._update_status()
+        elif c.qd_arm is not None:
+            t0 = clock()
+            try:
+                self.devices.arm.speed_j(c.qd_arm, self.cfg.arm.speedj_acceleration,
+                                         self.period)
+                self.commands_sent["speed_j"] += 1
+            except (SafetyFault, TransportError) as exc:
+                self._write_failed("arm", FaultCause.ARM_DISCONNECTED, exc)
+                self._kick_arm_watchdog()  # no speedJ went out: the watchdog as ever
+                return
+            t1 = clock()
             self.phase_ns[3, row] = t1 - t0
-        except (SafetyFault, TransportError) as exc:
-            cause = getattr(exc, "cause", FaultCause.ARM_DISCONNECTED)
-            if self.safety.trip(cause, device="arm", **getattr(exc, "details", {})):
-                self._send_stop()
-            return False
-        if not base:
-            return True
-        try:
-            vx, vy, wz = float(r.twist[0]), float(r.twist[1]), float(r.twist[2])
-            dev.base.send_twist(vx, vy, wz)
-            self._twist_sent = (vx, vy, wz)
-            self.commands_sent["twist"] += 1
-            self.phase_ns[4, row] = time.perf_counter_ns() - t1
-        except (SafetyFault, TransportError) as exc:
-            cause = getattr(exc, "cause", FaultCause.BASE_LINK)
-            if self.safety.trip(cause, device="base", **getattr(exc, "details", {})):
-                self._send_stop()
-        return True
+            if c.twist is not None:
+                try:
+                    self.devices.base.send_twist(*c.twist)
+                    self.commands_sent["twist"] += 1
+                    self.phase_ns[4, row] = clock() - t1
+                except (SafetyFault, TransportError) as exc:
+                    self._write_failed("base", FaultCause.BASE_LINK, exc)
+        if c.kick:
+            t0 = clock()
+            self._kick_arm_watchdog()
+            self.phase_ns[3, row] = clock() - t0
 
-    def _base_due(self, index: int, twist: Any) -> bool:
-        """Every ``loop.base_divider``-th cycle, or at once when the twist jumped by more
-        than ``loop.base_jump`` since the last one sent (a new push)."""
-        last = self._twist_sent
-        if index % self.cfg.loop.base_divider == 0 or last is None:
-            return True
-        jump = self.cfg.loop.base_jump
-        jumped: bool = (abs(twist[0] - last[0]) > jump or abs(twist[1] - last[1]) > jump
-                        or abs(twist[2] - last[2]) > jump)
-        return jumped
+    def _write_failed(self, device: str, default: FaultCause,
+                      exc: SafetyFault | TransportError) -> None:
+        """A command that failed: the write's one reflex.  The fault latches in this
+        cycle (the pure transition, :func:`mmctl.control.safety.trip`) and the stop goes
+        out at once; the next reads find the cause if it persists."""
+        cause = exc.cause if isinstance(exc, SafetyFault) else default
+        details = {"device": device,
+                   **(exc.details if isinstance(exc, SafetyFault) else {"error": str(exc)})}
+        safety, _, events = sm.trip(self.ustate.safety, cause, details)
+        log_events(events, self._limiter)
+        self.ustate = self.ustate._replace(safety=safety, twist_sent=None)
+        self._send_stop()
 
     def _kick_arm_watchdog(self) -> None:
         """A cycle without speedJ still feeds the controller's RTDE watchdog: only a
@@ -261,19 +286,91 @@ class CycleDriver(_Parts):
         (each drive ramps down before its power stage goes off, 0x605B)."""
         self.devices.stop(self.cfg.arm.stop_deceleration, disable_base=True,
                           arm=not self._arm_busy, wait=False)
-        self._twist_sent = None
         self.commands_sent["stop"] += 1
 
-    def _poll_button(self) -> None:
-        button = self.devices.button
-        if button is None:
+    def _request_sensor(self, row: int) -> None:
+        """Ask a request/reply sensor for its next sample (``loop.sensor_request``)."""
+        if self._sensor_request is None:
             return
+        t0 = time.perf_counter_ns()
         try:
-            now = button.pressed()
-        except (MmctlError, OSError):
-            return
-        if now and not self._button_was and self.core.mode == "switch":
-            self.core.toggle_switch()
-            log.info("switch", new=self.core.switch, source="button")
-        self._button_was = now
+            self._sensor_request()
+        except TransportError as exc:  # the next read finds no reply: stale, a fault
+            suppressed = self._limiter.allow("sensor_request_failed")
+            if suppressed is not None:
+                log.warning("sensor_request_failed", error=str(exc), suppressed=suppressed)
+        self.phase_ns[5, row] = time.perf_counter_ns() - t0
 
+    def apply_now(self, cmd: Command) -> Any:
+        """Without a loop thread (tests and tools stepping the daemon by hand): the
+        update takes ``cmd`` at once (no control step), judged on a fresh arm sample and
+        the last cycle's other readings, and the stop goes out when it says so; returns the reply (or raises
+        its error)."""
+        if self.readings is None:
+            raise MmctlError("refused: no control cycle has run yet")
+        fut: Future[Any] = Future()
+        fut.set_running_or_notify_cancel()
+        # the arm read again (a reconnect may have just brought it back), the rest as the
+        # last cycle saw it
+        conditions: Conditions = {c: d for c, d in self.readings.conditions.items()
+                                  if not c.value.startswith("arm_")}
+        arm = None if self._arm_busy else self._read_one("arm", self.devices.arm.read_state,
+                                                         conditions)
+        readings = self.readings._replace(arm=arm, conditions=conditions,
+                                          misses=self.loop.consecutive_misses)
+        state, stop, events = self.update.apply(self.ustate, readings, [cmd])
+        log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self._limiter)
+        self.ustate = state
+        self.core.cstate = state.chain
+        if stop:
+            self._send_stop()
+        self._after(events, [(cmd, fut)])
+        try:
+            return fut.result(0)
+        finally:
+            del fut
+
+    # -- after the write: events and replies --------------------------------------------
+    def _after(self, events: tuple[Any, ...], inbox: list[tuple[Command, Future[Any]]]) -> None:
+        if not events:
+            return
+        status = False
+        for ev in events:
+            if isinstance(ev, Reply):
+                self._reply(inbox[ev.index], ev)
+            elif isinstance(ev, Switched):
+                log.info("switch", new=ev.new, source=ev.source)
+                status = True
+            elif isinstance(ev, Changed):
+                self._log_changed(ev)
+                status = True
+            elif isinstance(ev, (FaultRaised, StateChanged)):
+                status = True
+        if status:
+            self._update_status()
+
+    def _log_changed(self, ev: Changed) -> None:
+        if ev.what == "profile":
+            log.info("profile", old=ev.old, new=ev.new, caps=self.core.caps)
+        else:
+            log.info(ev.what, old=ev.old, new=ev.new)
+
+    def _reply(self, item: tuple[Command, Future[Any]], ev: Reply) -> None:
+        """Hand one command's answer to its caller, after the runtime's part of it (on
+        the loop thread, so the loop's next read already sees it)."""
+        cmd, fut = item
+        if ev.error is None:
+            match cmd:
+                case BeginEnable() if ev.value:
+                    self._arm_busy = True  # the enable reconnects the arm: leave it alone
+                case EnableCheck() if ev.value:
+                    self._base_busy = True  # the enable enables the base: leave it alone
+                case EnableFinish() if ev.value == "armed":
+                    self.loop.reset_misses()
+                case Install(cfg=cfg, controller=controller, key=key):
+                    self.core.installed(cfg, controller, key)
+                case _:
+                    pass
+            fut.set_result(ev.value)
+        else:
+            fut.set_exception(ev.error)

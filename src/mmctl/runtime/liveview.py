@@ -59,8 +59,10 @@ def render(snap: Mapping[str, Any], width: int = 100) -> list[str]:
     width: the longest line allowed [characters]; longer lines end in ``…``.
     """
     snap = snap if isinstance(snap, Mapping) else {}
+    loop = snap.get("loop")
+    loop = loop if isinstance(loop, Mapping) else {}
     lines = [_header(snap), _force(snap.get("f_h")), _speed(snap), _energy(snap),
-             _loop(snap.get("loop"))]
+             _loop(loop), f"{'':<{_LABEL}}{misses_text(loop)}"]
     sim = snap.get("sim")
     if isinstance(sim, Mapping):
         lines.append(f"{'sim':<{_LABEL}}person {_text(sim.get('person'))}   "
@@ -95,9 +97,11 @@ def _force(f_h: Any) -> str:
 
 
 def _speed(snap: Mapping[str, Any]) -> str:
+    """Measured speeds (``-`` while a device is not read), the desired one labelled."""
     return (f"{'speed':<{_LABEL}}end-effector {_num(snap.get('ee_speed'), '.3f')} m/s   "
             f"base {_num(snap.get('base_speed'), '.3f')} m/s  "
-            f"{_num(snap.get('base_yaw_rate'), '+.2f')} rad/s")
+            f"{_num(snap.get('base_yaw_rate'), '+.2f')} rad/s   (measured; desired "
+            f"{_num(snap.get('ee_speed_desired'), '.3f')} m/s)")
 
 
 def _energy(snap: Mapping[str, Any]) -> str:
@@ -109,15 +113,24 @@ def _energy(snap: Mapping[str, Any]) -> str:
             f"(base share {share} %)")
 
 
+def misses_text(loop: Mapping[str, Any]) -> str:
+    """The loop's misses as status and the live view both say them: deadlines missed /
+    (cycles run + deadlines missed), over the labelled window and since the start."""
+    m = loop.get("misses")
+    m = m if isinstance(m, Mapping) else {}
+    return (f"misses {_num(m.get('window_pct'), '.2f')} % of the last "
+            f"{_num(loop.get('window_s'), '.0f')} s ({_num(m.get('window'), 'd')}), "
+            f"{_num(m.get('since_start'), 'd')} since start "
+            f"({_num(m.get('since_start_pct'), '.2f')} %)")
+
+
 def _loop(loop: Any) -> str:
     loop = loop if isinstance(loop, Mapping) else {}
-    miss = _finite(loop.get("miss_rate"))
     return (f"{'loop':<{_LABEL}}{_num(loop.get('rate_hz'), '.0f')} Hz   "
             f"compute p50/p99 {_num(loop.get('compute_p50_us'), '.0f')}/"
             f"{_num(loop.get('compute_p99_us'), '.0f')} us   "
             f"wake p99 {_num(loop.get('latency_p99_us'), '.0f')} us   "
-            f"misses {_num(None if miss is None else 100 * miss, '.2f')} % "
-            f"({_num(loop.get('total_misses'), 'd')})")
+            f"over the last {_num(loop.get('window_s'), '.0f')} s")
 
 
 def _finite(value: Any) -> float | None:

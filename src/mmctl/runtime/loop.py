@@ -186,6 +186,9 @@ class CycleLoop:
             self.spin_margin_ns)
         self.consecutive_misses = 0
         self.total_misses = 0
+        #: deadlines missed since the loop started (never reset: the figure status
+        #: shows; ``total_misses`` is the overrun budget's, reset on enable)
+        self.missed_since_start = 0
         self.cycles = 0
 
     # -- lifecycle -----------------------------------------------------------------
@@ -251,6 +254,7 @@ class CycleLoop:
                     deadline += missed * period
                     self.consecutive_misses += 1
                     self.total_misses += missed
+                    self.missed_since_start += missed
                 else:
                     self.consecutive_misses = 0
                 ring.record(this_deadline, wake - this_deadline, end - wake,

@@ -16,6 +16,8 @@ from numpy.typing import NDArray
 
 from mmctl.config import Config
 from mmctl.control.calibration import ToolCalibration
+from mmctl.control.safety import Safety
+from mmctl.control.update import Readings, Update, UpdateState
 from mmctl.errors import FaultCause
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.daemon import SampleHook
@@ -23,7 +25,6 @@ from mmctl.runtime.devices import Devices
 from mmctl.runtime.logging import RateLimiter
 from mmctl.runtime.loop import CycleLoop
 from mmctl.runtime.notify import Notifier
-from mmctl.runtime.safety import SafetyMonitor
 from mmctl.runtime.sim_link import SimLink
 from mmctl.runtime.timing import TimingRing
 from mmctl.telemetry.service import TelemetryService
@@ -36,7 +37,11 @@ class DaemonParts:
     cfg: Config
     devices: Devices
     core: ControlCore
-    safety: SafetyMonitor
+    update: Update
+    ustate: UpdateState
+    inbox_size: int
+    readings: Readings | None
+    _inputs: tuple[int, ...]
     notifier: Notifier
     sim: SimLink | None
     telemetry: TelemetryService | None
@@ -50,28 +55,36 @@ class DaemonParts:
     phase_ns: NDArray[np.int64]
     sample_hook: SampleHook | None
     last: CycleResult | None
+    last_cycle: int
     last_conditions: dict[FaultCause, dict[str, Any]]
     _t0_ns: int
     _limiter: RateLimiter
     _arm_busy: bool
     _arm_reconnect: threading.Lock
     _base_busy: bool
-    speed_scaling: float
-    _arm_time: float
-    _arm_repeats: int
     _base_enable: threading.Lock
-    _commands: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]]
+    _commands: queue.SimpleQueue[tuple[Any, Future[Any]]]
     _stop_requested: threading.Event
     _param_lock: threading.Lock
     _healthy_cycle: threading.Event
     _handlers: dict[str, Callable[[Mapping[str, Any]], Any]]
     _sensor_request: Callable[[], None] | None
     _request_at_start: bool
-    _twist_sent: tuple[float, float, float] | None
-    _button_was: bool
     calibration: ToolCalibration | None
 
-    def _on_loop(self, fn: Callable[[], Any], timeout: float | None = None) -> Any: ...
+    @property
+    def safety(self) -> Safety:
+        raise NotImplementedError
+
+    @property
+    def speed_scaling(self) -> float:
+        raise NotImplementedError
+
+    def _on_loop(self, cmd: Any, timeout: float | None = None) -> Any: ...
+
+    def step_once(self, overrun: bool = False) -> None: ...
+
+    def apply_now(self, cmd: Any) -> Any: ...
 
     def _cmd_calibrate(self, req: Mapping[str, Any]) -> Any: ...
 
