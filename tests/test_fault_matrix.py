@@ -264,6 +264,11 @@ class ScriptedSensor:
     def stats(self) -> SensorStats:
         return SensorStats(self.seq, 0, 0)
 
+    def reconnect(self) -> None:
+        """The link again: fails while the scripted error persists."""
+        if self.error is not None:
+            raise TransportError(f"{self.link}: reconnect failed: {self.error}")
+
     def close(self) -> None:
         self.rec.add("sensor", "close")
 
@@ -302,6 +307,10 @@ class ScriptedBase:
 
     def connect(self) -> None:
         self.rec.add("base", "connect")
+
+    def reconnect(self) -> None:
+        """Nothing to do: the scripted link itself never drops (its errors are scripted
+        on enable and on the per-cycle calls)."""
 
     def enable(self) -> None:
         self.rec.add("base", "enable")
@@ -565,7 +574,8 @@ CASES = [
          _set("sensor", force=np.array([0.0, 0.0, 1000.0])), _set("sensor", force=PUSH)),
     Case("sensor_link_lost", FaultCause.SENSOR_LINK,
          _set("sensor", error=TransportError("CAN receive failed on 'mmctl-sensor'")),
-         _set("sensor", error=None)),
+         _set("sensor", error=None),
+         refusal="refused to enable: the sensor did not reconnect [(].*reconnect failed"),
     Case("wrench_over_the_limit", FaultCause.WRENCH_LIMIT,
          _set("sensor", force=np.array([0.0, 0.0, 200.0])), _set("sensor", force=PUSH)),
     Case("nan_in_the_wrench", FaultCause.NON_FINITE,

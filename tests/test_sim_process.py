@@ -263,6 +263,62 @@ def test_the_enabling_switch_through_the_fake_urs_inputs(sim: Sim) -> None:
             daemon.wait(30)
 
 
+@pytest.mark.parametrize("device, cause", [("sensor", "sensor_link_lost"),
+                                           ("base", "base_link_lost")])
+def test_a_can_link_cut_under_the_armed_daemon_stops_and_comes_back_on_enable(
+        sim: Sim, device: str, cause: str) -> None:
+    """The CAN adapter of one device pulled under the armed, moving daemon (the fake's
+    socketcand connections dropped, its channel refused): the fault names the link, the
+    robot stops, one fault event and no traceback; enable is refused while the adapter
+    is out; plugged back, enable reconnects the real client over socketcand and the
+    robot moves again."""
+    out = sim.tmp / f"daemon-cut-{device}.log"
+    sock = sim.tmp / "mmctl.sock"
+
+    def daemon_status() -> dict[str, Any]:
+        st: dict[str, Any] = request(sock, "status", timeout=30.0)
+        return st
+
+    def handle() -> np.ndarray:
+        return np.array(sim.call("status")["handle_world"])
+
+    def at_rest() -> bool:
+        st = sim.call("status")
+        return max(abs(v) for v in st["arm_qd"] + st["wheel_velocities"]) < 1e-6
+
+    daemon = _run_daemon(sim, out)
+    try:
+        sim.wait_for(lambda: daemon_status()["state"] == "armed", "the daemon to arm")
+        sim.call("push", force=[0.0, 30.0, 0.0])
+        p0 = handle()
+        sim.wait_for(lambda: handle()[1] - p0[1] > 0.02, "the handle to move 2 cm along +y")
+        sim.call("fault", name=f"{device}_unplugged", on=True)
+        sim.wait_for(lambda: daemon_status()["state"] == "fault", "the fault")
+        st = daemon_status()
+        assert st["fault"] == cause, st
+        sim.wait_for(at_rest, "the arm and the wheels to come to rest")
+        with pytest.raises(Exception, match="did not reconnect|refused to enable"):
+            request(sock, "enable", timeout=60.0)
+        assert daemon_status()["state"] == "fault"
+        sim.call("fault", name=f"{device}_unplugged", on=False)
+        assert request(sock, "enable", timeout=60.0)["state"] == "armed"
+        p1 = handle()
+        sim.wait_for(lambda: handle()[1] - p1[1] > 0.02, "the handle to move on along +y")
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(120) == 0, out.read_text()[-3000:]
+        events = [json.loads(line) for line in out.read_text().splitlines()
+                  if line.startswith("{")]
+        faults = [e for e in events if e.get("event") == "fault"]
+        assert [e["cause"] for e in faults] == [cause], faults
+        assert not [e for e in events if e.get("event") == "cycle_failed"], events
+        assert "Traceback" not in out.read_text()
+    finally:
+        sim.call("push", force=None)
+        sim.call("fault", name=f"{device}_unplugged", on=False)
+        if daemon.poll() is None:
+            daemon.kill()
+
+
 def test_ctrl_c_ends_the_sim_cleanly(tmp_path: Path) -> None:
     s = Sim(tmp_path, _host(3))
     try:

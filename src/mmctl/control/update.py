@@ -47,7 +47,10 @@ BASE_CAUSES = frozenset({FaultCause.DRIVE_FAULT, FaultCause.DRIVE_HEARTBEAT,
 #: Causes after which an enable reconnects the arm first.
 ARM_RECONNECT_CAUSES = frozenset({FaultCause.ARM_DISCONNECTED, FaultCause.ARM_STALE,
                                   FaultCause.ARM_NOT_PLAYING})
-_ARM_CAUSES = frozenset(c for c in FaultCause if c.value.startswith("arm_"))
+#: Causes an enable judges on this cycle's reads only (a link it may have just
+#: reconnected): the arm's and the sensor's link.
+_FRESH_CAUSES = frozenset(
+    {c for c in FaultCause if c.value.startswith("arm_")} | {FaultCause.SENSOR_LINK})
 _Z3 = np.zeros(3)
 _NO_CONDITIONS: Conditions = MappingProxyType({})
 
@@ -91,8 +94,9 @@ class Install(NamedTuple):
 
 
 class BeginEnable(NamedTuple):
-    """An enable's first step: replies whether the arm's link must be reconnected first
-    (an arm link or program condition present, or latched)."""
+    """An enable's first step: replies the links to reconnect first (``"arm"``: an arm
+    link or program condition present or latched; ``"sensor"``: the sensor's link lost,
+    present or latched), a tuple of names, empty when none."""
 
 
 class EnableCheck(NamedTuple):
@@ -399,10 +403,14 @@ class Update:
                 return s, None, False
             case BeginEnable():
                 if s.safety.armed:
-                    return s, False, False
+                    return s, (), False
                 sf = s.safety
-                return s, bool(sf.active.keys() & ARM_RECONNECT_CAUSES
-                               or sf.latched in ARM_RECONNECT_CAUSES), False
+                links = []
+                if sf.active.keys() & ARM_RECONNECT_CAUSES or sf.latched in ARM_RECONNECT_CAUSES:
+                    links.append("arm")
+                if FaultCause.SENSOR_LINK in sf.active or sf.latched is FaultCause.SENSOR_LINK:
+                    links.append("sensor")
+                return s, tuple(links), False
             case EnableCheck():
                 if s.safety.armed:
                     return s, False, False
@@ -446,17 +454,18 @@ class Update:
 
     def _other_conditions(self, s: UpdateState, r: Readings, conditions: Conditions,
                           base: bool) -> dict[FaultCause, Mapping[str, Any]]:
-        """The conditions an enable must find gone: the last cycle's but the arm's and
-        the base's (the base latches its faults until its own enable resets them), the
-        arm's and (``base``) the base's from this cycle's reads; a loop on time again
-        (no miss in a row) is no longer an overrun."""
+        """The conditions an enable must find gone: the last cycle's but the links' and
+        the base's (the base latches its faults until its own enable resets them); the
+        arm's and the sensor's link (:data:`_FRESH_CAUSES`) and (``base``) the base's
+        from this cycle's reads; a loop on time again (no miss in a row) is no longer an
+        overrun."""
         other: dict[FaultCause, Mapping[str, Any]] = {
             c: d for c, d in s.safety.active.items()
-            if c not in BASE_CAUSES and c not in _ARM_CAUSES}
+            if c not in BASE_CAUSES and c not in _FRESH_CAUSES}
         if r.misses == 0:
             other.pop(FaultCause.LOOP_OVERRUN, None)
         for c, d in conditions.items():
-            if c in _ARM_CAUSES or (base and c in BASE_CAUSES) or c is FaultCause.ENABLING_DEVICE:
+            if c in _FRESH_CAUSES or (base and c in BASE_CAUSES):
                 other.setdefault(c, d)
         return other
 

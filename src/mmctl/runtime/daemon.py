@@ -191,6 +191,8 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         """An arm reconnect runs off the loop thread (set and cleared around it): the
         loop then leaves the arm alone and counts it as disconnected."""
         self._arm_reconnect = threading.Lock()
+        self._sensor_busy = False
+        """A sensor reconnect runs off the loop thread: the loop leaves the sensor alone."""
         self._base_busy = False
         """The base's enable runs off the loop thread (it waits for SDO answers and for
         a wheel still ramping down): the loop then leaves the base alone."""

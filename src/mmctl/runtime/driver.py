@@ -163,7 +163,11 @@ class CycleDriver(_Parts):
         odom = None if self._base_busy else self._read_one("base", dev.base.read_odometry,
                                                            conditions)
         t2 = clock()
-        wrench = self._read_one("sensor", dev.sensor.read, conditions)
+        wrench = None
+        if self._sensor_busy:
+            conditions[FaultCause.SENSOR_LINK] = {"device": "sensor", "why": "reconnecting"}
+        else:
+            wrench = self._read_one("sensor", dev.sensor.read, conditions)
         t3 = clock()
         phase[0, row], phase[2, row], phase[1, row] = t1 - t0, t2 - t1, t3 - t2
         calib = self.calibration
@@ -290,7 +294,7 @@ class CycleDriver(_Parts):
 
     def _request_sensor(self, row: int) -> None:
         """Ask a request/reply sensor for its next sample (``loop.sensor_request``)."""
-        if self._sensor_request is None:
+        if self._sensor_request is None or self._sensor_busy:
             return
         t0 = time.perf_counter_ns()
         try:
@@ -310,13 +314,19 @@ class CycleDriver(_Parts):
             raise MmctlError("refused: no control cycle has run yet")
         fut: Future[Any] = Future()
         fut.set_running_or_notify_cancel()
-        # the arm read again (a reconnect may have just brought it back), the rest as the
-        # last cycle saw it
+        # the arm and the sensor read again (a reconnect may have just brought them back),
+        # the rest as the last cycle saw it
         conditions: Conditions = {c: d for c, d in self.readings.conditions.items()
-                                  if not c.value.startswith("arm_")}
+                                  if not c.value.startswith(("arm_", "sensor_"))}
         arm = None if self._arm_busy else self._read_one("arm", self.devices.arm.read_state,
                                                          conditions)
-        readings = self.readings._replace(arm=arm, conditions=conditions,
+        wrench = None
+        if not self._sensor_busy:
+            try:
+                wrench = self._read_one("sensor", self.devices.sensor.read, conditions)
+            except Exception as exc:  # as a cycle would: a condition, never a crash here
+                conditions[FaultCause.INTERNAL] = {"error": repr(exc)}
+        readings = self.readings._replace(arm=arm, wrench=wrench, conditions=conditions,
                                           misses=self.loop.consecutive_misses)
         state, stop, events = self.update.apply(self.ustate, readings, [cmd])
         log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self._limiter)
@@ -361,8 +371,9 @@ class CycleDriver(_Parts):
         cmd, fut = item
         if ev.error is None:
             match cmd:
-                case BeginEnable() if ev.value:
-                    self._arm_busy = True  # the enable reconnects the arm: leave it alone
+                case BeginEnable():  # the enable reconnects these links: leave them alone
+                    self._arm_busy = self._arm_busy or "arm" in ev.value
+                    self._sensor_busy = self._sensor_busy or "sensor" in ev.value
                 case EnableCheck() if ev.value:
                     self._base_busy = True  # the enable enables the base: leave it alone
                 case EnableFinish() if ev.value == "armed":

@@ -173,20 +173,27 @@ class OperatorCommands(_Parts):
         """Operator re-arm within ``budget`` [s].  Neither step that waits for a device
         runs on the loop thread, which keeps its period meanwhile:
 
-        1. when the arm's link or program is lost (:class:`BeginEnable`), the arm
-           reconnects on *this* thread (it takes seconds) while the loop leaves the arm
-           alone;
+        1. when the sensor's link, or the arm's link or program, is lost
+           (:class:`BeginEnable`), it reconnects on *this* thread (the arm's takes
+           seconds) while the loop leaves that device alone;
         2. the update checks every condition but the base's (:class:`EnableCheck`:
            refused at once when one is present);
-        3. the base enables on *this* thread (SDO round trips; a wheel still ramping
-           down on the last stop is waited for), the loop leaving the base alone;
+        3. the base reconnects its link if it was lost and enables on *this* thread
+           (SDO round trips; a wheel still ramping down on the last stop is waited
+           for), the loop leaving the base alone;
         4. the update checks again and arms (:class:`EnableFinish`), or refuses and stops.
 
         An enable reported as failed (refused, the reconnect failed, the budget ran out)
         never takes effect later: a base enabled for an enable that then failed is
         disabled again."""
         deadline = time.monotonic() + budget
-        if self._on_loop(BeginEnable(), budget):
+        links = self._on_loop(BeginEnable(), budget)
+        try:
+            if "sensor" in links:
+                self._reconnect_sensor()
+        finally:
+            self._sensor_busy = False
+        if "arm" in links:
             with self._arm_reconnect:
                 try:
                     self._reconnect_arm()
@@ -225,6 +232,7 @@ class OperatorCommands(_Parts):
         wrong and the cause the base names after it, for :class:`EnableFinish` to
         refuse with (the base disables itself again when its enable fails)."""
         try:
+            self.devices.base.reconnect()  # a lost link: connect again (else nothing)
             self.devices.base.enable()
             self.devices.base.check()
         except (MmctlError, OSError) as exc:
@@ -245,6 +253,17 @@ class OperatorCommands(_Parts):
             self.devices.base.disable(wait=False)
         except (MmctlError, OSError) as exc:
             log.warning("base_enable_undo_failed", error=str(exc))
+
+    def _reconnect_sensor(self) -> None:
+        """Enable after the sensor's link was lost (off the loop thread, the loop leaving
+        the sensor alone): connect again (the transport re-reads its calibration)."""
+        log.info("sensor_reconnecting")
+        try:
+            self.devices.sensor.reconnect()
+        except (MmctlError, OSError) as exc:
+            log.warning("sensor_reconnect_failed", error=str(exc))
+            raise MmctlError(f"refused to enable: the sensor did not reconnect ({exc})") from None
+        log.info("sensor_reconnected")
 
     def _reconnect_arm(self) -> None:
         """Enable after a lost link / stopped program (off the loop thread, the loop

@@ -239,6 +239,8 @@ class SocketcandServer:
         self._wake_w: socket.socket | None = None
         self._accept_thread: threading.Thread | None = None
         self._failures: list[BaseException] = []
+        #: channels whose adapter is pulled (:meth:`unplug`)
+        self.unplugged: set[str] = set()
 
     # -- public API ----------------------------------------------------------------------
 
@@ -253,6 +255,19 @@ class SocketcandServer:
         """Connections open right now (from accept until their teardown is done)."""
         with self._lock:
             return len(self._clients)
+
+    def unplug(self, channel: str, unplugged: bool = True) -> int:
+        """A pulled (``unplugged``) or re-plugged USB-CAN adapter of ``channel``: while
+        unplugged, its connections are dropped and ``< open >`` of it is refused as for
+        a bus that does not exist.  Returns how many connections were dropped."""
+        with self._lock:
+            if unplugged:
+                self.unplugged.add(channel)
+            else:
+                self.unplugged.discard(channel)
+        log.info("socketcand_channel_unplugged" if unplugged else "socketcand_channel_plugged",
+                 channel=channel)
+        return self.drop_clients(channel) if unplugged else 0
 
     def drop_clients(self, channel: str | None = None) -> int:
         """Close every client connection (only those on ``channel`` if given), as a
@@ -528,6 +543,8 @@ class _Client:
         if allowed is not None and name not in allowed:
             raise ProtocolError(
                 f"could not open bus {name} (served: {' '.join(sorted(allowed)) or 'none'})")
+        if name in self.server.unplugged:
+            raise ProtocolError(f"could not open bus {name} (its adapter is unplugged)")
         self.channel = name
         self.mode = _Mode.BUS_OPEN
         self._send("< ok >")

@@ -68,6 +68,9 @@ FAULTS = {
     "drive_reboot": "drive 1 (FL) reboots (power glitch): default objects, boot-up message",
     "sensor_garbage": "the CAN sensor answers with malformed (3-byte) frames",
     "enabling_contact": "the enabling switch's second contact stays open (a broken wire)",
+    "sensor_unplugged": "the sensor's CAN adapter is pulled (socketcand: its connections "
+                        "dropped, opening its channel refused until plugged back)",
+    "base_unplugged": "the drives' CAN adapter is pulled (as sensor_unplugged, for the base)",
 }
 #: Faults that are events, not states: "off" means nothing.
 _EVENTS = {"arm_not_playing", "drive_fault", "drive_reboot"}
@@ -426,6 +429,12 @@ class SimWorld:
                 self.drives.reboot(nid)
         elif fault == "sensor_garbage":
             self.sensor.garbage = on
+        elif fault in ("sensor_unplugged", "base_unplugged"):
+            if self.can_server is None:
+                raise MmctlError(f"the {fault} fault needs the CAN links served by socketcand "
+                                 "(sensor.can / base.canopen interface: socketcand)")
+            link = self.cfg.sensor.can if fault == "sensor_unplugged" else self.cfg.base.canopen
+            self.can_server.unplug(link.channel, on)
         with self._lock:
             if fault in _EVENTS:
                 pass  # an event: nothing stays on
