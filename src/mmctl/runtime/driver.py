@@ -324,7 +324,7 @@ class CycleDriver(_Parts):
         if not self._sensor_busy:
             try:
                 wrench = self._read_one("sensor", self.devices.sensor.read, conditions)
-            except Exception as exc:  # as a cycle would: a condition, never a crash here
+            except Exception as exc:  # noqa: BLE001 -- as a cycle would: a condition
                 conditions[FaultCause.INTERNAL] = {"error": repr(exc)}
         readings = self.readings._replace(arm=arm, wrench=wrench, conditions=conditions,
                                           misses=self.loop.consecutive_misses)
