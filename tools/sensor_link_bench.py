@@ -14,14 +14,15 @@ socketcand server, in a process of its own (as ``mmctl sim`` does).  A loop at
 
 Printed per way: the loop's ``read()`` cost [us] (p50/p90/p99/max), the sample's age
 when the loop got it [us], the samples that were new, and the reads that raised (a
-stale or status fault).  The age is ``now - sample timestamp`` for the link process
-(stamped in the child when the reply is decoded); in-process the sample is stamped when
-the loop's own ``read()`` decodes it, so there the age is taken from the request it
-answers (``request_next()`` at the end of the previous cycle), its upper bound.  Then
-the link process's ``read()`` back to back (mean of 20 000 calls, ns).
+stale or status fault).  The age runs from the request the sample answers (the
+sample is at most that old): ``request_next()`` at the end of the previous cycle
+in-process, the child's request (``SensorLinkProcess.timing()``) for the link process.
+(The sample's own time stamp is no measure in-process: it is taken when the loop's
+``read()`` decodes the reply.)  Then the link process's ``read()`` back to back (mean
+of 20 000 calls, ns) and its age since the child decoded the sample.
 
     .venv/bin/python tools/sensor_link_bench.py [--cycles 5000] [--rate 500]
-        [--compute 600] [--lead 600] [--json]
+        [--compute 600] [--lead 1000] [--json]
 """
 
 from __future__ import annotations
@@ -75,10 +76,14 @@ def busy(ns: int) -> None:
 
 
 def run_loop(read: Callable[[], Wrench], after: Callable[[], None] | None, cycles: int,
-             period_ns: int, compute_ns: int, first_deadline: int) -> dict[str, Any]:
-    """The loop's read at each deadline; costs [ns] and ages [ns] of each read."""
+             period_ns: int, compute_ns: int, first_deadline: int,
+             asked_at: Callable[[], int] | None = None) -> dict[str, Any]:
+    """The loop's read at each deadline; costs [ns] and ages [ns] of each read.  The age
+    runs from the request the sample answers: ``after`` (request_next) in this loop, or
+    ``asked_at()`` (the link process's record says when its child asked)."""
     cost = np.empty(cycles, dtype=np.int64)
     age = np.zeros(cycles, dtype=np.int64)
+    decoded = np.zeros(cycles, dtype=np.int64)
     clock = time.perf_counter_ns
     faults: dict[str, int] = {}
     new = 0
@@ -101,8 +106,9 @@ def run_loop(read: Callable[[], Wrench], after: Callable[[], None] | None, cycle
             t1 = clock()
             # in-process the sample is stamped when read() decodes it, so its age says
             # nothing: the data is as old as the request it answers
-            since = asked if after is not None else round(w.timestamp * 1e9)
+            since = asked if asked_at is None else asked_at()
             age[k] = t1 - since if since else 0  # (no request yet: no age)
+            decoded[k] = t1 - round(w.timestamp * 1e9)
             if w.sequence != last_seq:
                 new += 1
                 last_seq = w.sequence
@@ -120,6 +126,7 @@ def run_loop(read: Callable[[], Wrench], after: Callable[[], None] | None, cycle
             deadline += ((end - deadline) // period_ns + 1) * period_ns
     ok = age > 0
     return {"read_us": pct(cost / 1e3), "age_us": pct(age[ok] / 1e3),
+            "since_decoded_us": pct(decoded[ok] / 1e3),
             "new_samples": new, "cycles": cycles, "faults": faults}
 
 
@@ -147,7 +154,7 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=500.0, help="loop rate [Hz]")
     ap.add_argument("--compute", type=float, default=600.0,
                     help="busy work per cycle after the read [us]")
-    ap.add_argument("--lead", type=float, default=600.0,
+    ap.add_argument("--lead", type=float, default=1000.0,
                     help="the link process asks this long before each deadline [us]")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
@@ -176,7 +183,8 @@ def main() -> None:
             behind = time.perf_counter_ns() + 100 * period_ns - origin
             first = origin + (behind // period_ns + 1) * period_ns  # on the grid
             results["link-process"] = run_loop(link.read, None, args.cycles, period_ns,
-                                               compute_ns, first)
+                                               compute_ns, first,
+                                               lambda: link.timing().requested_ns)
             results["link_read_back_to_back_ns"] = back_to_back(link.read)
     finally:
         parent.send("stop")
@@ -197,7 +205,10 @@ def main() -> None:
         print(f"  {way:<12} {c['p50']:7.1f} {c['p90']:7.1f} {c['p99']:7.1f} {c['max']:7.1f}"
               f"   {a.get('p50', 0):7.1f} {a.get('p90', 0):7.1f} {a.get('p99', 0):7.1f}"
               f" {a.get('max', 0):7.1f}  {r['new_samples']:5d}   {r['faults'] or '-'}")
-    print(f"  link-process read() back to back: {results['link_read_back_to_back_ns']:.0f} ns")
+    d = results["link-process"]["since_decoded_us"]
+    print(f"  link-process: read() back to back {results['link_read_back_to_back_ns']:.0f} ns;"
+          f" age since the child decoded the sample p50 {d.get('p50', 0):.1f},"
+          f" p99 {d.get('p99', 0):.1f} us")
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ import select
 import signal
 import time
 from enum import IntEnum
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import structlog
@@ -81,6 +81,7 @@ FORCE_SENSOR_LAYOUT = MailboxLayout("force_sensor", (
     ("errors", 1),        # error records published since the child started
     ("detail", 1),        # id of the side-pipe message describing the newest error
     ("published_ns", 1),  # when the child published this record [ns, CLOCK_MONOTONIC]
+    ("requested_ns", 1),  # when the child asked for the sample it read (0: streaming)
     ("received", 1), ("lost", 1), ("out_of_order", 1), ("resets", 1), ("restarts", 1),
 ))
 """The sensor's record; the header's t_ns is the *sample's* reception time."""
@@ -88,7 +89,7 @@ FORCE_SENSOR_LAYOUT = MailboxLayout("force_sensor", (
 _I = {name: FORCE_SENSOR_LAYOUT.slice(name).start for name, _ in FORCE_SENSOR_LAYOUT.fields}
 _STATUS, _SEQUENCE, _ERROR, _ERRORS, _DETAIL = (
     _I["status"], _I["sequence"], _I["error"], _I["errors"], _I["detail"])
-_PUBLISHED = _I["published_ns"]
+_PUBLISHED, _REQUESTED = _I["published_ns"], _I["requested_ns"]
 _WRENCH = FORCE_SENSOR_LAYOUT.slice("wrench")
 _STATS = FORCE_SENSOR_LAYOUT.slice("received").start
 
@@ -100,6 +101,15 @@ CLOSE_TIMEOUT = 5.0
 DETAIL_INTERVAL_NS = 50_000_000
 """[ns] between two details messages of one kind of error whose values change (a stale
 fault's age): the side pipe carries a few messages a second at most."""
+
+
+class LinkTiming(NamedTuple):
+    """When the newest record's sample was asked for, decoded and published by the child
+    [ns, CLOCK_MONOTONIC; 0: not known] (for telemetry and benchmarks)."""
+
+    requested_ns: int
+    received_ns: int
+    published_ns: int
 
 
 class LinkError(IntEnum):
@@ -166,14 +176,16 @@ class SensorLinkProcess:
     period: the loop's period [s] (``1 / loop.rate_hz``); origin_ns: one deadline of the
     loop [ns, ``perf_counter_ns``] (None: the child picks its own grid until
     :meth:`set_phase`); lead: how long before each deadline a request/reply sensor is
-    asked [s] (a round trip plus margin: socketcand's p99 is ~0.5 ms);
+    asked [s]: the round trip's p90-p99 plus the child's wake-up lateness (~0.1 ms);
+    the simulator's socketcand round trip is 0.4 ms p50, 0.7 ms p90 on a 2-core
+    machine (docs/mailbox.md), hence 1 ms;
     stream_poll: how often a streaming sensor is read [s]; stale_timeout: a sample
     older than this is ``SENSOR_STALE`` [s] (default ``sensor.wrench.stale_timeout``);
     log_setup: (level, json) for the child's structlog (the daemon's own).
     """
 
     def __init__(self, cfg: SensorConfig, *, period: float = 0.002,
-                 origin_ns: int | None = None, lead: float = 600e-6,
+                 origin_ns: int | None = None, lead: float = 1e-3,
                  stream_poll: float = 250e-6, stale_timeout: float | None = None,
                  log_setup: tuple[str, bool | None] = ("info", None)) -> None:
         if not 1e-4 <= period <= 1.0:
@@ -367,6 +379,11 @@ class SensorLinkProcess:
                               link=self.link, source="link_process")
         return self._wrench
 
+    def timing(self) -> LinkTiming:
+        """The newest record's times, as of the last :meth:`read`."""
+        s = self._sample
+        return LinkTiming(int(s.values[_REQUESTED]), s.t_ns, int(s.values[_PUBLISHED]))
+
     def stats(self) -> SensorStats:
         """The child transport's counters, as of the newest record read."""
         v = self._sample.values
@@ -391,7 +408,7 @@ class SensorLinkProcess:
         except (EOFError, OSError):
             proc = self._proc
             if proc is not None:
-                proc.join(0.1)  # reap it, for its exit code
+                proc.join(0)  # reap it if it has ended (never waits), for its exit code
             code = None if proc is None else proc.exitcode
             self._gone = LinkLost(self.link, FaultCause.SENSOR_LINK,
                                   f"the link process ended (exit code {code})")
@@ -492,6 +509,7 @@ class _Child:
         request_next = getattr(transport, "request_next", None)
         self.request_next = request_next if callable(request_next) else None
         self.last: Wrench | None = None
+        self.requested_ns = 0
         self.errors = 0
         self.detail = 0
         self.described: Described | None = None
@@ -521,6 +539,7 @@ class _Child:
         """One request (if the sensor needs one) and read; publish what came."""
         try:
             if self.request_next is not None:
+                self.requested_ns = now_ns()
                 self.request_next()
             w = self.transport.read()
         except Exception as exc:  # noqa: BLE001 - published, raised in the parent
@@ -576,5 +595,6 @@ class _Child:
         v[_ERRORS] = self.errors
         v[_DETAIL] = self.detail
         v[_PUBLISHED] = now_ns()
+        v[_REQUESTED] = self.requested_ns
         v[_STATS:_STATS + 5] = np.asarray(self.transport.stats(), dtype=np.float64)
         self.box.publish(0 if w is None else round(w.timestamp * 1e9))
