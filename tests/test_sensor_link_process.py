@@ -41,7 +41,7 @@ WRENCH = (3.0, -4.0, 10.0, 0.25, -0.5, 0.125)
 
 def _serve_can(conn: Connection, host: str) -> None:
     """Spawned: the fake sensor on a virtual channel served by socketcand at ``host``;
-    obeys ("status", word), ("drop",); ("stop",) or a closed pipe ends it."""
+    obeys ("set", attribute, value), ("drop",); ("stop",) or a closed pipe ends it."""
     from mmctl.sim.socketcand import SocketcandServer
 
     with SocketcandServer(host, port=0, channels=[CHANNEL]) as server, \
@@ -52,8 +52,8 @@ def _serve_can(conn: Connection, host: str) -> None:
                 msg = conn.recv()
             except EOFError:
                 return
-            if msg[0] == "status":
-                fake.status = msg[1]
+            if msg[0] == "set":  # fault injection: status, saturate, garbage
+                setattr(fake, msg[1], msg[2])
             elif msg[0] == "drop":  # a pulled USB-CAN adapter: the TCP connections end
                 conn.send(("ok", server.drop_clients()))
                 continue
@@ -135,7 +135,8 @@ def can_side() -> Iterator[CanSide]:
 
 @pytest.fixture
 def can_link(can_side: CanSide) -> Iterator[SensorLinkProcess]:
-    can_side.command("status", 0)
+    for attr, value in (("status", 0), ("saturate", False), ("garbage", False)):
+        can_side.command("set", attr, value)
     link = SensorLinkProcess(can_sensor_config(can_side.address))
     yield link
     link.close()
@@ -252,7 +253,7 @@ def test_a_status_error_is_the_same_safety_fault_as_in_process(
         can_side: CanSide, can_link: SensorLinkProcess) -> None:
     with can_link:
         can_link.read()
-        can_side.command("status", STATUS_DAC_ADC_TOO_HIGH)
+        can_side.command("set", "status", STATUS_DAC_ADC_TOO_HIGH)
         exc = read_until(can_link, lambda r: isinstance(r, SafetyFault), "the status fault")
         try:
             check_status(STATUS_DAC_ADC_TOO_HIGH | 0x8000, np.zeros(6))
@@ -261,7 +262,23 @@ def test_a_status_error_is_the_same_safety_fault_as_in_process(
             assert exc.details == direct.details, (exc.details, direct.details)
         with pytest.raises(SafetyFault):  # while the sensor says so, every read
             can_link.read()
-        can_side.command("status", 0)
+        can_side.command("set", "status", 0)
+        read_until(can_link, lambda w: isinstance(w, Wrench), "a good sample again")
+
+
+def test_saturation_and_garbage_come_back_as_in_process(
+        can_side: CanSide, can_link: SensorLinkProcess) -> None:
+    with can_link:
+        can_link.read()
+        can_side.command("set", "saturate", True)
+        exc = read_until(can_link, lambda r: isinstance(r, SafetyFault), "the saturation")
+        assert exc.cause is FaultCause.SENSOR_SATURATION and exc.details == {"gauges": ["sg2"]}
+        can_side.command("set", "saturate", False)
+        read_until(can_link, lambda w: isinstance(w, Wrench), "a good sample again")
+        can_side.command("set", "garbage", True)  # a 3-byte reply: malformed
+        exc = read_until(can_link, lambda r: isinstance(r, ProtocolError), "ProtocolError")
+        assert not isinstance(exc, LinkLost) and "DLC 3" in str(exc)  # the transport's words
+        can_side.command("set", "garbage", False)
         read_until(can_link, lambda w: isinstance(w, Wrench), "a good sample again")
 
 
