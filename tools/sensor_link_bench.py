@@ -22,7 +22,7 @@ in-process, the child's request (``SensorLinkProcess.timing()``) for the link pr
 of 20 000 calls, ns) and its age since the child decoded the sample.
 
     .venv/bin/python tools/sensor_link_bench.py [--cycles 5000] [--rate 500]
-        [--compute 600] [--lead 1000] [--json]
+        [--compute 600] [--lead 1000] [--rt-priority 0] [--json]
 """
 
 from __future__ import annotations
@@ -156,8 +156,11 @@ def main() -> None:
                     help="busy work per cycle after the read [us]")
     ap.add_argument("--lead", type=float, default=1000.0,
                     help="the link process asks this long before each deadline [us]")
+    ap.add_argument("--rt-priority", type=int, default=0,
+                    help="SCHED_FIFO priority of this loop and of the link's child (0: none)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    from mmctl.runtime.loop import apply_realtime
     from mmctl.transports.sensor.can_ft import CanForceSensor
     from mmctl.transports.sensor.link_process import SensorLinkProcess
 
@@ -170,6 +173,8 @@ def main() -> None:
     child.close()
     address = parent.recv()
     cfg = sensor_config(address)
+    if args.rt_priority:
+        apply_realtime(args.rt_priority, ())
     results: dict[str, Any] = {}
     try:
         with CanForceSensor(cfg.can, stale_timeout=cfg.wrench.stale_timeout) as sensor:
@@ -178,7 +183,7 @@ def main() -> None:
                                              period_ns, compute_ns, start)
         origin = time.perf_counter_ns()  # the loop's grid: origin + k period
         link = SensorLinkProcess(cfg, period=period_ns / 1e9, origin_ns=origin,
-                                 lead=args.lead * 1e-6)
+                                 lead=args.lead * 1e-6, rt_priority=args.rt_priority)
         with link:
             behind = time.perf_counter_ns() + 100 * period_ns - origin
             first = origin + (behind // period_ns + 1) * period_ns  # on the grid

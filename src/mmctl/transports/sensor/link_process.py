@@ -48,6 +48,7 @@ import os
 import select
 import signal
 import time
+from collections.abc import Sequence
 from enum import IntEnum
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -181,12 +182,17 @@ class SensorLinkProcess:
     machine (docs/mailbox.md), hence 1 ms;
     stream_poll: how often a streaming sensor is read [s]; stale_timeout: a sample
     older than this is ``SENSOR_STALE`` [s] (default ``sensor.wrench.stale_timeout``);
+    rt_priority, cpu_affinity: the child's SCHED_FIFO priority (0: normal) and CPUs,
+    best effort as the loop's (:func:`mmctl.runtime.loop.apply_realtime`; the child's
+    timer slack is 1 us either way): when the loop runs real-time, so must its sensor,
+    or anything at normal priority delays the samples;
     log_setup: (level, json) for the child's structlog (the daemon's own).
     """
 
     def __init__(self, cfg: SensorConfig, *, period: float = 0.002,
                  origin_ns: int | None = None, lead: float = 1e-3,
                  stream_poll: float = 250e-6, stale_timeout: float | None = None,
+                 rt_priority: int = 0, cpu_affinity: Sequence[int] = (),
                  log_setup: tuple[str, bool | None] = ("info", None)) -> None:
         if not 1e-4 <= period <= 1.0:
             raise ValueError(f"period {period} s must be within 0.1 ms .. 1 s")
@@ -203,6 +209,7 @@ class SensorLinkProcess:
         self.lead_ns = round(lead * 1e9)
         self.stream_poll = stream_poll
         self.stale_ns = round(stale * 1e9)
+        self.realtime = (int(rt_priority), tuple(cpu_affinity))
         self.log_setup = log_setup
         self._link: str | None = None
         self._proc: Any = None
@@ -248,7 +255,8 @@ class SensorLinkProcess:
         parent, child = ctx.Pipe(duplex=True)
         phase = (self.origin_ns, self.period_ns, self.lead_ns)
         proc = ctx.Process(target=_serve, args=(child, self.cfg, box.name, phase,
-                                                self.stream_poll, self.log_setup),
+                                                self.stream_poll, self.realtime,
+                                                self.log_setup),
                            name="mmctl-sensor", daemon=True)
         try:
             proc.start()
@@ -467,7 +475,8 @@ def next_deadline(now_ns: int, origin_ns: int, period_ns: int, lead_ns: int) -> 
 # -- the child ---------------------------------------------------------------------------
 
 def _serve(conn: Any, cfg: SensorConfig, box_name: str, phase: tuple[int | None, int, int],
-           stream_poll: float, log_setup: tuple[str, bool | None]) -> None:
+           stream_poll: float, realtime: tuple[int, tuple[int, ...]],
+           log_setup: tuple[str, bool | None]) -> None:
     """Entry point of the sensor's process (see the module doc)."""
     try:
         os.setsid()  # a terminal's Ctrl-C reaches the daemon only
@@ -476,9 +485,11 @@ def _serve(conn: Any, cfg: SensorConfig, box_name: str, phase: tuple[int | None,
     for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT"):  # the daemon ends this process
         signal.signal(getattr(signal, name), signal.SIG_IGN)
     from mmctl.runtime.logging import setup_logging
+    from mmctl.runtime.loop import apply_realtime
     from mmctl.transports.sensor import open_sensor
 
     setup_logging(log_setup[0], json=log_setup[1])
+    apply_realtime(*realtime)  # before connect: the transport's threads inherit it
     box = Mailbox.attach(box_name, FORCE_SENSOR_LAYOUT)
     transport = open_sensor(cfg)
     try:
