@@ -38,6 +38,8 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("tare", "mmctl.commands.tare", "re-zero the force/torque sensor"),
     ("pose", "mmctl.commands.pose", "record the arm's pose as the preferred one (robot.q_des)"),
     ("stop", "mmctl.commands.stop", "shut the daemon down"),
+    ("replay", "mmctl.commands.replay",
+     "run a recorded inputs log through the update again; the first differing cycle"),
 ]
 
 #: group -> (help, [(sub-command, module, one-line help)])

@@ -31,6 +31,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", metavar="ADDR",
                    help="telemetry: stream to a running rerun viewer (HOST:PORT or URL)")
     p.add_argument("--record", metavar="FILE", help="telemetry: save a .rrd recording")
+    p.add_argument("--record-inputs", metavar="DIR",
+                   help="write every cycle's readings, operator commands and the update's "
+                        "commands to the new folder DIR (for `mmctl replay DIR`; about 1 GB "
+                        "an hour at 500 Hz)")
     p.add_argument("--no-live", action="store_true",
                    help="no live status block on a terminal (plain log lines)")
 
@@ -66,8 +70,14 @@ def _run(args: argparse.Namespace) -> int:
 
         require("telemetry", "telemetry (--viewer, --connect, --record)")
     telemetry = TelemetryService(cfg, destinations)
+    input_log = None
+    if args.record_inputs:
+        from mmctl.runtime.inputlog import InputLog
+
+        input_log = InputLog(args.record_inputs, cfg)
+        input_log.open()  # before anything starts: a folder in use is one line
     daemon = create_daemon(cfg, socket_path, sim_log=Path(args.sim_log) if args.sim_log else None,
-                           telemetry=telemetry)
+                           telemetry=telemetry, input_log=input_log)
     view = None
     if sys.stdout.isatty() and not args.log_json and not args.no_live:
         from mmctl.runtime.liveview import LiveView

@@ -58,6 +58,7 @@ from mmctl.runtime.loop import CycleLoop, Wait
 if TYPE_CHECKING:
     from mmctl.control.calibration import ToolCalibration, ToolLoadFit
     from mmctl.model.robot import RobotModel
+    from mmctl.runtime.inputlog import InputLog
     from mmctl.runtime.sim_link import SimLink
     from mmctl.telemetry.service import TelemetryService
 from mmctl.runtime.driver import PHASES, CycleDriver
@@ -134,7 +135,7 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
     def __init__(self, cfg: Config, devices: Devices, core: ControlCore, *,
                  socket_path: Path | None = None, notifier: Notifier | None = None,
                  sim: SimLink | None = None, telemetry: TelemetryService | None = None,
-                 loop_wait: Wait | None = None):
+                 loop_wait: Wait | None = None, input_log: InputLog | None = None):
         self.cfg = cfg
         self.devices = devices
         self.core = core
@@ -146,6 +147,11 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         #: the arm's digital inputs a cycle reads: the enabling contacts, the button
         self._inputs = tuple(cfg.enabling.inputs) + (
             (cfg.daemon.switch_input,) if cfg.daemon.switch_input >= 0 else ())
+        #: every cycle's readings, inbox and commands (None: not recorded)
+        self.input_log = input_log
+        #: the update's state as the update left it this cycle (the runtime's own
+        #: changes after it go into the input log as patches)
+        self._updated: UpdateState = self.ustate
         #: the last cycle's readings (None: no cycle yet)
         self.readings: Readings | None = None
         self.notifier = notifier if notifier is not None else Notifier()
@@ -331,6 +337,8 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
                 log.error("socket_close_failed", error=str(exc))
         if self.telemetry is not None:
             self.telemetry.close()
+        if self.input_log is not None:
+            self.input_log.close()
         reconnect_done = self._arm_reconnect.acquire(timeout=3 * self.cfg.arm.connect_timeout + 2)
         if not reconnect_done:  # never close the arm under a reconnect in progress
             log.error("arm_reconnect_still_running", why="the arm is not closed")

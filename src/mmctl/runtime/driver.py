@@ -39,6 +39,7 @@ from mmctl.control.update import (
     Switched,
 )
 from mmctl.errors import FaultCause, MmctlError, SafetyFault, TransportError
+from mmctl.runtime.inputlog import patch_between
 from mmctl.runtime.loop import Tick
 from mmctl.runtime.safety import log_events
 
@@ -80,6 +81,7 @@ class CycleDriver(_Parts):
     def cycle(self, tick: Tick) -> None:
         """One control period (loop thread)."""
         inbox: list[tuple[Command, Future[Any]]] = []
+        self._updated = self.ustate
         try:
             inbox = self._take_inbox()
             self._cycle(tick, inbox)
@@ -99,6 +101,10 @@ class CycleDriver(_Parts):
             suppressed = self._limiter.allow("cycle_failed")
             if suppressed is not None:
                 log.exception("cycle_failed", error=repr(exc), suppressed=suppressed)
+        if self.input_log is not None and self.ustate is not self._updated:
+            patch = patch_between(self._updated, self.ustate)
+            if patch is not None:
+                self.input_log.patch(tick.index, patch)
         self.cycles += 1
         if self.notifier.watchdog_interval is not None:
             self.notifier.watchdog_tick(tick.wake_ns)
@@ -188,7 +194,9 @@ class CycleDriver(_Parts):
         self.step_ns[self.cycles % self.step_ns.shape[0]] = time.perf_counter_ns() - t0
         if events:  # logged before the new state is seen: a fault seen has its event
             log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self._limiter)
-        self.ustate = state
+        self.ustate = self._updated = state
+        if self.input_log is not None:
+            self.input_log.append(readings, [c for c, _ in inbox], commands)
         self.core.cstate = state.chain
         self.last_conditions = {c: dict(d) for c, d in state.safety.active.items()}
         result = commands.result

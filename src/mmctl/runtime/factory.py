@@ -16,6 +16,7 @@ from mmctl.config import Config
 from mmctl.runtime.core import ControlCore
 from mmctl.runtime.daemon import Daemon
 from mmctl.runtime.devices import open_devices
+from mmctl.runtime.inputlog import InputLog
 from mmctl.runtime.loop import Wait
 from mmctl.runtime.notify import Notifier
 
@@ -27,14 +28,17 @@ def in_process_sim(cfg: Config) -> bool:
 
 def create_daemon(cfg: Config, socket_path: Path | None, *, sim_log: Path | None = None,
                   notifier: Notifier | None = None, telemetry: Any = None,
-                  attach_sim: bool | None = None, loop_wait: Wait | None = None) -> Daemon:
+                  attach_sim: bool | None = None, loop_wait: Wait | None = None,
+                  input_log: InputLog | None = None) -> Daemon:
     """The daemon for ``cfg`` (nothing started or connected yet).
 
     telemetry: a :class:`~mmctl.telemetry.service.TelemetryService`; default: one built
     from ``cfg.telemetry`` (publishing nothing unless a destination is configured).
     attach_sim: link to (or start) `mmctl sim`; default: ``sim.enabled`` unless the
     CAN links are in-process (:func:`in_process_sim`).  loop_wait: the loop's wait
-    strategy (default: sleep, then spin; `mmctl bench loop` gives its own).
+    strategy (default: sleep, then spin; `mmctl bench loop` gives its own).  input_log:
+    an opened :class:`~mmctl.runtime.inputlog.InputLog` the loop writes every cycle into
+    (closed at the daemon's shutdown).
     """
     if attach_sim is None:
         attach_sim = cfg.sim.enabled and not in_process_sim(cfg)
@@ -50,4 +54,4 @@ def create_daemon(cfg: Config, socket_path: Path | None, *, sim_log: Path | None
 
         telemetry = TelemetryService(cfg, destinations_from(cfg))
     return Daemon(cfg, devices, core, socket_path=socket_path, notifier=notifier, sim=sim,
-                  telemetry=telemetry, loop_wait=loop_wait)
+                  telemetry=telemetry, loop_wait=loop_wait, input_log=input_log)

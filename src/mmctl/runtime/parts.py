@@ -22,6 +22,7 @@ from mmctl.errors import FaultCause
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.daemon import SampleHook
 from mmctl.runtime.devices import Devices
+from mmctl.runtime.inputlog import InputLog
 from mmctl.runtime.logging import RateLimiter
 from mmctl.runtime.loop import CycleLoop
 from mmctl.runtime.notify import Notifier
@@ -41,6 +42,8 @@ class DaemonParts:
     ustate: UpdateState
     inbox_size: int
     readings: Readings | None
+    input_log: InputLog | None
+    _updated: UpdateState
     _inputs: tuple[int, ...]
     notifier: Notifier
     sim: SimLink | None
