@@ -12,7 +12,8 @@ socketcand server, in a process of its own (as ``mmctl sim`` does).  A loop at
   ``--lead`` before each deadline of the loop's grid): ``read()`` at the start of the
   cycle, the same busy work.
 
-Printed per way: the loop's ``read()`` cost [us] (p50/p90/p99/max), the sample's age
+A ``baseline`` loop whose read() returns a constant shows what any call costs right
+after the loop wakes (cold caches).  Printed per way: the loop's ``read()`` cost [us] (p50/p90/p99/max), the sample's age
 when the loop got it [us], the samples that were new, and the reads that raised (a
 stale or status fault).  The age runs from the request the sample answers (the
 sample is at most that old): ``request_next()`` at the end of the previous cycle
@@ -176,6 +177,9 @@ def main() -> None:
     if args.rt_priority:
         apply_realtime(args.rt_priority, ())
     results: dict[str, Any] = {}
+    fixed = Wrench(np.zeros(3), np.zeros(3), 0.0, 0)
+    results["baseline"] = run_loop(lambda: fixed, None, args.cycles, period_ns, compute_ns,
+                                   time.perf_counter_ns() + 10 * period_ns)
     try:
         with CanForceSensor(cfg.can, stale_timeout=cfg.wrench.stale_timeout) as sensor:
             start = time.perf_counter_ns() + 100 * period_ns
@@ -204,7 +208,7 @@ def main() -> None:
     print("                 loop's read() [us]                sample age at read [us]")
     print("  way            p50     p90     p99     max       p50     p90     p99     max"
           "   new   faults")
-    for way in ("in-process", "link-process"):
+    for way in ("baseline", "in-process", "link-process"):
         r = results[way]
         c, a = r["read_us"], r["age_us"]
         print(f"  {way:<12} {c['p50']:7.1f} {c['p90']:7.1f} {c['p99']:7.1f} {c['max']:7.1f}"

@@ -156,10 +156,13 @@ class Sample:
     """A reader's own copy of one record (preallocated; :meth:`Mailbox.read_into` fills it).
 
     ``values``: (layout.width,) float64 view of the fields; ``view(name)`` one field's
-    view (both stay valid: reads copy into them).  seq 0 means "nothing read yet".
+    view (both stay valid: reads copy into them); ``fields``: the same values as a
+    memoryview of doubles, whose items are plain floats (on a path that must be cheap
+    when the caches are cold, numpy's scalar indexing costs tens of us, this does not).
+    seq 0 means "nothing read yet".
     """
 
-    __slots__ = ("_buf", "_mv", "_q", "_views", "layout", "values")
+    __slots__ = ("_buf", "_mv", "_q", "_views", "fields", "layout", "values")
 
     def __init__(self, layout: MailboxLayout) -> None:
         self.layout = layout
@@ -167,6 +170,7 @@ class Sample:
         self._mv = memoryview(self._buf)
         self._q = self._mv[:16].cast("q")
         self.values: NDArray[np.float64] = np.frombuffer(self._buf, np.float64, offset=16)
+        self.fields = self._mv[16:].cast("d")
         self._views = {name: self.values[layout.slice(name)] for name, _ in layout.fields}
 
     @property
