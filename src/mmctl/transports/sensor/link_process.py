@@ -43,10 +43,12 @@ unlinks it at ``close()``, also after the child died.
 
 from __future__ import annotations
 
+import atexit
 import multiprocessing
 import os
 import select
 import signal
+import threading
 import time
 from collections.abc import Sequence
 from enum import IntEnum
@@ -225,6 +227,7 @@ class SensorLinkProcess:
         self._missed_error = False
         self._details: dict[int, tuple[int, Described]] = {}
         self._gone: LinkLost | None = None
+        self._lock = threading.Lock()
 
     @property
     def link(self) -> str:
@@ -289,15 +292,21 @@ class SensorLinkProcess:
             box.close()
             raise rebuild(reply[1])
         self._link = reply[1]
-        self._proc, self._conn, self._box = proc, parent, box
-        self._poller = select.poll()
-        self._poller.register(parent.fileno(), select.POLLIN)
-        self._sample = Sample(FORCE_SENSOR_LAYOUT)
-        self._wrench = None
-        self._wrench_t_ns = 0
-        self._errors_seen = 0
-        self._missed_error = False
-        self._gone = None
+        poller = select.poll()
+        poller.register(parent.fileno(), select.POLLIN)
+        with self._lock:  # a read() on another thread sees all of it or none
+            self._proc, self._conn, self._box = proc, parent, box
+            self._poller = poller
+            self._sample = Sample(FORCE_SENSOR_LAYOUT)
+            self._wrench = None
+            self._wrench_t_ns = 0
+            self._errors_seen = 0
+            self._missed_error = False
+            self._gone = None
+        # before multiprocessing's own exit handler, which joins daemonic children
+        # without a timeout (this one ignores SIGTERM): a daemon that never closed us
+        # must still exit
+        atexit.register(self.close)
         log.info("sensor_process_started", link=self._link, pid=proc.pid, mailbox=box.name)
 
     def reconnect(self) -> None:
@@ -333,12 +342,14 @@ class SensorLinkProcess:
     def close(self) -> None:
         """Ask the child to close its transport and end; kill it if it does not within
         CLOSE_TIMEOUT; unlink the mailbox.  Safe to call twice."""
-        proc, conn, box = self._proc, self._conn, self._box
-        self._proc = self._conn = self._box = None
-        if box is not None:
-            box.close()
+        with self._lock:  # not under a read() on another thread
+            proc, conn, box = self._proc, self._conn, self._box
+            self._proc = self._conn = self._box = None
+            if box is not None:
+                box.close()
         if proc is None:
             return
+        atexit.unregister(self.close)
         try:
             conn.send(("close",))
         except OSError:
@@ -357,7 +368,12 @@ class SensorLinkProcess:
     # -- per cycle ---------------------------------------------------------------------
 
     def read(self) -> Wrench:
-        """The newest sample from the mailbox; never blocks (see the module doc)."""
+        """The newest sample from the mailbox; never blocks (see the module doc).  The
+        lock is only ever held briefly (here, and to swap the mailbox in connect/close)."""
+        with self._lock:
+            return self._read()
+
+    def _read(self) -> Wrench:
         box = self._box
         if box is None:
             raise TransportError(f"F/T sensor {self.link}: the link process is not connected")
