@@ -13,6 +13,8 @@ import dataclasses
 import multiprocessing
 import os
 import signal
+import subprocess
+import sys
 from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from typing import Any, TypeVar, cast
@@ -352,3 +354,26 @@ def test_the_child_ends_with_its_parent_pipe(rdt_fake: FakeRdtServer) -> None:
     proc.join(30.0)
     assert proc.exitcode == 0
     link.close()  # the parent still unlinks the segment
+
+
+def test_a_process_that_never_closes_the_link_still_exits(rdt_fake: FakeRdtServer) -> None:
+    """multiprocessing's exit handler joins daemonic children without a timeout and the
+    child ignores SIGTERM: the link closes itself at exit first (the segment goes too)."""
+    host, port = rdt_fake.address
+    script = (
+        "import dataclasses as d, os\n"
+        "from mmctl.config import default_config\n"
+        "from mmctl.transports.sensor.link_process import SensorLinkProcess\n"
+        "c = default_config().sensor\n"
+        f"c = d.replace(c, transport='rdt', rdt=d.replace(c.rdt, host={host!r}, port={port}))\n"
+        "link = SensorLinkProcess(c, stale_timeout=5.0)\n"
+        "link.connect()\n"
+        "print(os.getpid(), link.read().sequence > 0, flush=True)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          check=False, timeout=120)  # a hang guard, not a timing
+    assert done.returncode == 0, done.stderr[-2000:]
+    ours = [line.split() for line in done.stdout.splitlines() if line.endswith((" True", " False"))]
+    assert len(ours) == 1 and ours[0][1] == "True", done.stdout[-2000:]  # (log lines besides)
+    pid = ours[0][0]
+    assert not [f for f in os.listdir("/dev/shm") if f.startswith(f"mmctl-force_sensor-{pid}-")]
