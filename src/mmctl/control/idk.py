@@ -21,7 +21,10 @@ space inertia: its eigenvalues are inverse effective masses [1/kg] (1e-3 is an
 effective mass of 1000 kg in the heaviest direction).
 
 :func:`min_energy_block` is the same solution exploiting ``M = blockdiag(M_a, M_b)``
-with diagonal ``M_b`` (only the 6x6 ``M_a`` is factorised); the controller uses it.
+with diagonal ``M_b``; the controller uses it.  These run every 2 ms in Python, where
+each numpy or LAPACK call costs a few thousand instructions whatever the size: the
+solvers make few of them (one ``posv`` for ``M^-1 J^T``, ``ndarray.dot``, positional
+arguments to the LAPACK wrappers), and the flops of a 9x9 solve do not matter.
 """
 
 from __future__ import annotations
@@ -88,26 +91,50 @@ def damped_task_solve(
     inverse factor); only when that bound is below ``threshold`` are the eigenvalues
     computed (LAPACK ``syev``) to set the damping.
     """
-    L, info = _potrf(a, lower=1, clean=1)
+    return TaskSolve(*_damped(a, r, threshold, max_damping))
+
+
+def _damped(a: Vec, r: Vec, threshold: float, max_damping: float
+            ) -> tuple[Vec, float, float, float]:
+    """:func:`damped_task_solve` as a plain tuple (x, lam_min, lam_max, damping)."""
+    L, info = _potrf(a, 1, 1)  # lower, the upper part zeroed
     if info == 0:
-        Li, info = _trtri(L, lower=1)
+        Li, info = _trtri(L, 1)
         f = Li.ravel(order="K")  # no copy (LAPACK returns Fortran order)
-        tr_inv = float(f @ f)  # trace(a^-1) = |L^-1|_F^2
+        tr_inv = float(f.dot(f))  # trace(a^-1) = |L^-1|_F^2
         if info == 0 and tr_inv * threshold <= 1.0:
-            x, _ = _potrs(L, r, lower=1)
-            return TaskSolve(x, 1.0 / tr_inv, float(a.trace()), 0.0)
+            x, _ = _potrs(L, r, 1)
+            f = L.ravel(order="K")
+            return x, 1.0 / tr_inv, float(f.dot(f)), 0.0  # trace(a) = |L|_F^2
     w, _, info = _syev(a, compute_v=0)
     if info != 0 or not np.isfinite(w[0]):
-        return TaskSolve(np.full(r.shape, np.nan), float("nan"), float("nan"), 0.0)
+        return np.full(r.shape, np.nan), float("nan"), float("nan"), 0.0
     lam_min, lam_max = float(w[0]), float(w[-1])
     delta = damping_for(lam_min, threshold, max_damping)
     if delta > 0.0:
         a = a + delta * np.eye(a.shape[0])
-    return TaskSolve(solve_spd(a, r), lam_min, lam_max, delta)
+    return solve_spd(a, r), lam_min, lam_max, delta
 
 
 def _as_vec(v: Vec) -> Vec:
     return np.asarray(v, dtype=float).reshape(-1)
+
+
+def _min_energy(J: Vec, M: Vec, v_d: Vec, qdot_null: Vec | None, threshold: float,
+                max_damping: float, scratch: int) -> tuple[Vec, float, float, float] | None:
+    """The min-energy solve on arrays as (x, lam_min, lam_max, damping), None if ``M``
+    is not positive definite: ``Y = M^-1 J^T`` in one ``posv`` (``scratch``: ``M`` is
+    Fortran-ordered and may be overwritten), the task matrix ``J M^-1 J^T = J Y``, then
+    ``x = Y lam + qdot_null`` with ``(J Y) lam = v_d - J qdot_null``."""
+    _, Y, info = _posv(M, J.T, 1, scratch)  # lower
+    if info != 0:
+        return None
+    r = v_d if qdot_null is None else v_d - J.dot(qdot_null)
+    lam, lam_min, lam_max, delta = _damped(J.dot(Y), r, threshold, max_damping)
+    x: Vec = Y.dot(lam)
+    if qdot_null is not None:
+        x += qdot_null
+    return x, lam_min, lam_max, delta
 
 
 def min_energy(
@@ -127,18 +154,12 @@ def min_energy(
     (i.e. the result is the ``M``-closest solution to ``qdot_null``).
     Raises ValueError if ``M`` is not positive definite.
     """
-    J = np.asarray(J, dtype=float)
-    L, info = _potrf(np.asarray(M, dtype=float), lower=1, clean=1)
-    if info != 0:
+    sol = _min_energy(np.asarray(J, dtype=float), np.asarray(M, dtype=float), _as_vec(v_d),
+                      None if qdot_null is None else _as_vec(qdot_null), singular_threshold,
+                      max_damping, 0)
+    if sol is None:
         raise ValueError("M must be symmetric positive definite")
-    Y, _ = _potrs(L, J.T, lower=1)  # M^-1 J^T
-    r = _as_vec(v_d)
-    if qdot_null is not None:
-        qdot_null = _as_vec(qdot_null)
-        r = r - J @ qdot_null
-    lam = damped_task_solve(J @ Y, r, singular_threshold, max_damping).x
-    out: Vec = Y @ lam
-    return out if qdot_null is None else out + qdot_null
+    return sol[0]
 
 
 def min_energy_block(
@@ -150,45 +171,23 @@ def min_energy_block(
     singular_threshold: float = SINGULAR_THRESHOLD,
     max_damping: float = MAX_DAMPING,
 ) -> TaskSolve:
-    """:func:`min_energy` for ``M = blockdiag(M_a (6, 6), diag(m_b) (3,))``, J (6, 9).
+    """:func:`min_energy` for ``M = blockdiag(M_a (n, n), diag(m_b) (3,))``, J (6, n + 3)
+    (the arm's columns first, the base's three last; ``n = 6``, fewer for a subset of
+    the arm's joints).  Returns the (n + 3,) solution as ``x`` (NaN if ``M_a`` is not
+    positive definite) plus the eigenvalue range of ``J M^-1 J^T``.
 
-    Only the 6x6 ``M_a`` is factorised; ``J_b`` must have the planar-base structure
-    of :func:`mmctl.model.robot.base_jacobian` (columns e_x, e_y and
-    ``(-p_y, p_x, 0, 0, 0, 1)``), whose term ``J_b M_b^-1 J_b^T`` is written out.
-    Returns the (9,) solution as ``x`` plus the eigenvalue range of ``J M^-1 J^T``.
+    The block structure costs nothing to exploit at this size: what costs is the number
+    of numpy/LAPACK calls (each a few thousand instructions), so ``M`` is written out
+    and solved whole.
     """
-    L, info = _potrf(M_a, lower=1, clean=0)
-    if info != 0:
-        return TaskSolve(np.full(9, np.nan), float("nan"), float("nan"), 0.0)
-    Ja = J[:, :6]
-    Ya, _ = _potrs(L, Ja.T, lower=1)  # M_a^-1 J_a^T (6, 6)
-    A = Ja @ Ya
-    mx, my, i_z = m_b.tolist()
-    px, py = float(J[1, 8]), -float(J[0, 8])
-    imx, imy, iz = 1.0 / mx, 1.0 / my, 1.0 / i_z
-    a01 = -py * px * iz
-    a05, a15 = -py * iz, px * iz
-    A[0, 0] += imx + py * py * iz
-    A[1, 1] += imy + px * px * iz
-    A[5, 5] += iz
-    A[0, 1] += a01
-    A[1, 0] += a01
-    A[0, 5] += a05
-    A[5, 0] += a05
-    A[1, 5] += a15
-    A[5, 1] += a15
-    r = v_d if qdot_null is None else v_d - J @ qdot_null
-    sol = damped_task_solve(A, r, singular_threshold, max_damping)
-    lam = sol.x
-    x = np.empty(9)
-    x[:6] = Ya @ lam
-    l0, l1, _, _, _, l5 = lam.tolist()
-    x[6] = l0 * imx
-    x[7] = l1 * imy
-    x[8] = (-py * l0 + px * l1 + l5) * iz
-    if qdot_null is not None:
-        x += qdot_null
-    return sol._replace(x=x)
+    n = M_a.shape[0]
+    M = np.zeros((n + 3, n + 3), order="F")
+    M[:n, :n] = M_a
+    M.ravel(order="K")[n * (n + 4)::n + 4] = m_b  # the base's diagonal
+    sol = _min_energy(J, M, v_d, qdot_null, singular_threshold, max_damping, 1)
+    if sol is None:
+        return TaskSolve(np.full(n + 3, np.nan), float("nan"), float("nan"), 0.0)
+    return TaskSolve(*sol)
 
 
 def _weights(w: Vec, n: int, name: str) -> Vec:

@@ -16,6 +16,7 @@ runs :class:`Manipulation` or :class:`Locomotion` and cross-fades between them.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import ClassVar, NamedTuple
@@ -24,8 +25,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmctl.config import Config
-from mmctl.control.idk import min_energy, min_energy_block, solve_spd, weighted_dls
-from mmctl.control.limits import Limits
+from mmctl.control.idk import (
+    _min_energy,
+    min_energy,
+    min_energy_block,
+    solve_spd,
+    weighted_dls,
+)
+from mmctl.control.limits import AVOID_SHARE, Limits
 from mmctl.control.qp import box_qp
 from mmctl.model.robot import Kinematics
 
@@ -66,21 +73,99 @@ def hand_over(x: Vec, lb: Vec, ub: Vec, J: Vec, v_d: Vec,
     the base and the other joints take over the pinned joints' share of the motion.
     Repeated while the new solution crosses other bounds (``rounds`` at most); what is
     still out of bounds then is clipped (the limits scale the command after)."""
+    return _hand_over(x, lb.tolist(), ub.tolist(), J, v_d, resolve, rounds)
+
+
+def _hand_over(x: Vec, lo: list[float], hi: list[float], J: Vec, v_d: Vec,
+               resolve: Callable[[NDArray[np.bool_], Vec], Vec], rounds: int = 3) -> Vec:
+    """:func:`hand_over` with the bounds as lists: the bookkeeping on nine numbers is
+    done in Python floats, where numpy's cost per call would be most of the time."""
     tol = 1e-12
-    pinned = np.zeros(x.shape[0], dtype=bool)
+    pinned = [False] * len(lo)
+    xs = x.tolist()
     for _ in range(rounds):
-        out = (x < lb - tol) | (x > ub + tol)
-        if not out.any():
+        out = [v < a - tol or v > b + tol for v, a, b in zip(xs, lo, hi)]
+        if True not in out:
             return x
-        pinned |= out
-        free = ~pinned
-        if int(free.sum()) < 6:
+        pinned = [p or o for p, o in zip(pinned, out)]
+        if pinned.count(False) < 6:
             break
-        x_p = np.clip(x, lb, ub)[pinned]
-        x = x.copy()
-        x[pinned] = x_p
-        x[free] = resolve(free, v_d - J[:, pinned] @ x_p)
-    return np.clip(x, lb, ub)
+        # the pinned coordinates at their bounds (np.clip's min(max(x, lb), ub))
+        xs = [min(max(v, a), b) if p else v for v, a, b, p in zip(xs, lo, hi, pinned)]
+        x_pinned = np.array([v if p else 0.0 for v, p in zip(xs, pinned)])
+        x_free = iter(resolve(_free_mask(tuple(pinned)), v_d - J.dot(x_pinned)).tolist())
+        xs = [v if p else next(x_free) for v, p in zip(xs, pinned)]
+        x = np.array(xs)
+    return np.array([min(max(v, a), b) for v, a, b in zip(xs, lo, hi)])  # np.clip
+
+
+_FREE_MASKS: dict[tuple[bool, ...], NDArray[np.bool_]] = {}
+
+
+def _free_mask(pinned: tuple[bool, ...]) -> NDArray[np.bool_]:
+    """The (read-only) mask of the coordinates not ``pinned``, made once per pattern."""
+    mask = _FREE_MASKS.get(pinned)
+    if mask is None:
+        mask = ~np.array(pinned)
+        mask.setflags(write=False)
+        _FREE_MASKS[pinned] = mask
+    return mask
+
+
+class _Avoidance:
+    """:meth:`Limits.avoidance_bounds` in plain floats, and ``lb <= x <= ub`` against
+    them: the same expressions, so the same numbers and the same answer (NaN is out).
+
+    Most cycles are inside, and for them the bounds' arrays and their comparisons cost
+    more than the whole min-energy solve; :meth:`inside` computes a joint's bound only in
+    the direction it moves.  Construction checks the numbers against ``limits``'s own
+    at probe poses, so the two cannot drift apart unnoticed.
+    """
+
+    def __init__(self, limits: Limits) -> None:
+        self.margin = limits.margin
+        self.q_max = limits.q_max.tolist()
+        self.q_min = limits.q_min.tolist()
+        self.two_a = [AVOID_SHARE * t for t in limits._two_ab]
+        margin = self.margin
+        for q_a in ([0.0] * 6, *(
+                [f * q_max + (1.0 - f) * q_min for q_max, q_min in zip(self.q_max, self.q_min)]
+                for f in (-0.1, 0.0, 0.01, 0.3, 0.5, 0.97, 1.0, 1.1)),
+                [q - margin for q in self.q_max], [q + margin for q in self.q_min]):
+            lb, ub = limits.avoidance_bounds(q_a)
+            if self.bounds(q_a) != (lb.tolist(), ub.tolist()):
+                raise RuntimeError("strategies._Avoidance does not compute what "
+                                   "Limits.avoidance_bounds computes: change both")
+
+    def bounds(self, q_a: list[float]) -> tuple[list[float], list[float]]:
+        """(9,), (9,) lists: :meth:`Limits.avoidance_bounds` at ``q_a`` (6,) [rad]."""
+        margin = self.margin
+        lo = [-math.inf] * 9
+        hi = [math.inf] * 9
+        for i, (q, q_max, q_min, two_a) in enumerate(
+                zip(q_a, self.q_max, self.q_min, self.two_a)):
+            r = q_max - margin - q
+            hi[i] = 0.0 if r <= 0.0 else math.sqrt(two_a * r)
+            r = q - q_min - margin
+            lo[i] = -(0.0 if r <= 0.0 else math.sqrt(two_a * r))
+        return lo, hi
+
+    def inside(self, q_a: list[float], x: list[float]) -> bool:
+        """True if ``x`` (9,) is within the bounds at ``q_a`` (6,) [rad]."""
+        margin, isnan = self.margin, math.isnan
+        for v, q, q_max, q_min, two_a in zip(x, q_a, self.q_max, self.q_min, self.two_a):
+            if v > 0.0:
+                r = q_max - margin - q
+                if r <= 0.0 or v > math.sqrt(two_a * r):
+                    return False
+            elif v < 0.0:
+                r = q - q_min - margin
+                if r <= 0.0 or v < -math.sqrt(two_a * r):
+                    return False
+            elif isnan(v):
+                return False
+        # the base is unbounded: only NaN is out
+        return not (isnan(x[6]) or isnan(x[7]) or isnan(x[8]))
 
 
 class MinEnergy(IdkStrategy):
@@ -95,21 +180,24 @@ class MinEnergy(IdkStrategy):
         self.damp = cfg.idk.max_damping
         self.full = cfg.robot.full_inertia
         self.limits = limits if cfg.idk.avoid_joint_limits else None
+        self._avoid = _Avoidance(self.limits) if self.limits is not None else None
 
     def solve(self, p: Problem) -> Vec:
         k = p.kin
         x = self._whole(k, p.v_d, p.z)
-        if self.limits is None:
+        if self._avoid is None:
             return x
-        lb, ub = self.limits.avoidance_bounds(p.q[:6].tolist())
-        if bool(np.all(x >= lb)) and bool(np.all(x <= ub)):
+        q_a = p.q[:6].tolist()
+        if self._avoid.inside(q_a, x.tolist()):
             return x
+        lo, hi = self._avoid.bounds(q_a)
         M = self._inertia(k)
 
         def resolve(free: NDArray[np.bool_], rhs: Vec) -> Vec:
-            return self._weighted(k.J[:, free], M[np.ix_(free, free)], rhs, p.z[free])
+            return self._weighted(k.J.compress(free, 1),
+                                  M.compress(free, 0).compress(free, 1), rhs, p.z[free])
 
-        return hand_over(x, lb, ub, k.J, p.v_d, resolve)
+        return _hand_over(x, lo, hi, k.J, p.v_d, resolve)
 
     def _whole(self, k: Kinematics, v_d: Vec, z: Vec) -> Vec:
         """The solve on every coordinate (block form unless ``robot.full_inertia``)."""
@@ -118,8 +206,12 @@ class MinEnergy(IdkStrategy):
         return min_energy_block(k.J, k.M_a, k.M_b, v_d, z, self.thr, self.damp).x
 
     def _weighted(self, J: Vec, M: Vec, v_d: Vec, z: Vec) -> Vec:
-        """``J_M# v_d + P z`` with a dense weighting ``M`` on the columns of ``J``."""
-        return min_energy(J, M, v_d, z, singular_threshold=self.thr, max_damping=self.damp)
+        """``J_M# v_d + P z`` with a dense weighting ``M`` on the columns of ``J``
+        (:func:`min_energy` without its input conversions)."""
+        sol = _min_energy(J, M, v_d, z, self.thr, self.damp, 0)
+        if sol is None:
+            raise ValueError("M must be symmetric positive definite")
+        return sol[0]
 
     def _inertia(self, k: Kinematics) -> Vec:
         if self.full and k.M_full is not None:
@@ -143,22 +235,24 @@ class Locomotion(IdkStrategy):
         self.thr = cfg.idk.singular_threshold
         self.damp = cfg.idk.max_damping
         self.limits = limits if cfg.idk.avoid_joint_limits else None
+        self._avoid = _Avoidance(self.limits) if self.limits is not None else None
 
     def solve(self, p: Problem) -> Vec:
         J = p.kin.J
         x = weighted_dls(J, p.v_d, self.wa, self.wb, p.z,
                          singular_threshold=self.thr, max_damping=self.damp)
-        if self.limits is None:
+        if self._avoid is None:
             return x
-        lb, ub = self.limits.avoidance_bounds(p.q[:6].tolist())
-        if bool(np.all(x >= lb)) and bool(np.all(x <= ub)):
+        q_a = p.q[:6].tolist()
+        if self._avoid.inside(q_a, x.tolist()):
             return x
+        lo, hi = self._avoid.bounds(q_a)
 
         def resolve(free: NDArray[np.bool_], rhs: Vec) -> Vec:
-            return weighted_dls(J[:, free], rhs, self.wa, self.wb[free], p.z[free],
+            return weighted_dls(J.compress(free, 1), rhs, self.wa, self.wb[free], p.z[free],
                                 singular_threshold=self.thr, max_damping=self.damp)
 
-        return hand_over(x, lb, ub, J, p.v_d, resolve)
+        return _hand_over(x, lo, hi, J, p.v_d, resolve)
 
 
 class Manipulation(IdkStrategy):
