@@ -204,9 +204,11 @@ def test_the_phase_follows_the_loops_grid(can_side: CanSide) -> None:
     assert next_deadline(1_000, 0, 2_000, 600) == 2_000
     assert next_deadline(1_500, 0, 2_000, 600) == 4_000  # 1 400 is past: the next one
     assert next_deadline(-700, 10, 2_000, 600) == 10  # asked at -590: still ahead
-    link = SensorLinkProcess(can_sensor_config(can_side.address), period=1.0, lead=0.5)
+    link = SensorLinkProcess(can_sensor_config(can_side.address), period=1.0, lead=1e-3)
     with link:
         before = link.read().sequence
+        with pytest.raises(ValueError, match="within the lead"):
+            link.set_phase(0, period=0.0005)
         link.set_phase(0, period=0.002)  # now 500 Hz: samples come quickly again
         read_until(link, lambda w: isinstance(w, Wrench) and w.sequence >= before + 20,
                    "samples at the loop's new rate")

@@ -101,6 +101,8 @@ _STATS = FORCE_SENSOR_LAYOUT.slice("received").start
 START_TIMEOUT = 60.0
 """[s] for the child to start (imports on a loaded machine), on top of the link's own
 connect timeouts."""
+DEFAULT_LEAD = 1e-3
+"""[s] the default ``lead`` (see :class:`SensorLinkProcess`)."""
 CLOSE_TIMEOUT = 5.0
 """[s] for the child to end after ``close``; then it is killed."""
 DETAIL_INTERVAL_NS = 50_000_000
@@ -183,7 +185,8 @@ class SensorLinkProcess:
     :meth:`set_phase`); lead: how long before each deadline a request/reply sensor is
     asked [s]: the round trip's p90-p99 plus the child's wake-up lateness (~0.1 ms);
     the simulator's socketcand round trip is 0.4 ms p50, 0.7 ms p90 on a 2-core
-    machine (docs/mailbox.md), hence 1 ms;
+    machine (docs/mailbox.md), hence 1 ms by default (None), or half the period if
+    that is shorter;
     stream_poll: how often a streaming sensor is read [s]; stale_timeout: a sample
     older than this is ``SENSOR_STALE`` [s] (default ``sensor.wrench.stale_timeout``);
     rt_priority, cpu_affinity: the child's SCHED_FIFO priority (0: normal) and CPUs,
@@ -194,12 +197,14 @@ class SensorLinkProcess:
     """
 
     def __init__(self, cfg: SensorConfig, *, period: float = 0.002,
-                 origin_ns: int | None = None, lead: float = 1e-3,
+                 origin_ns: int | None = None, lead: float | None = None,
                  stream_poll: float = 250e-6, stale_timeout: float | None = None,
                  rt_priority: int = 0, cpu_affinity: Sequence[int] = (),
                  log_setup: tuple[str, bool | None] = ("info", None)) -> None:
         if not 1e-4 <= period <= 1.0:
             raise ValueError(f"period {period} s must be within 0.1 ms .. 1 s")
+        if lead is None:
+            lead = min(DEFAULT_LEAD, 0.5 * period)
         if not 0.0 <= lead < period:
             raise ValueError(f"lead {lead} s must be >= 0 and < the period {period} s")
         if not 1e-5 <= stream_poll <= 0.1:
@@ -330,9 +335,12 @@ class SensorLinkProcess:
     def set_phase(self, origin_ns: int, period: float | None = None) -> None:
         """Move the child's polling onto the loop's grid: ``origin_ns`` one deadline
         [ns, perf_counter_ns], ``period`` [s] (None: unchanged).  Never blocks."""
-        self.origin_ns = origin_ns
         if period is not None:
+            if not self.lead_ns < round(period * 1e9) <= 1_000_000_000:
+                raise ValueError(f"period {period} s must be within the lead "
+                                 f"{self.lead_ns * 1e-9:g} s .. 1 s")
             self.period_ns = round(period * 1e9)
+        self.origin_ns = origin_ns
         if self._conn is not None and self._gone is None:
             try:
                 self._conn.send(("phase", origin_ns, self.period_ns))
