@@ -318,7 +318,7 @@ class Controller:
             v_d, in_area = self.walls.filter_twist_area(v_d, q)
             walled = in_box or in_area
         J = kin.J
-        w, _, info = _syev(J @ J.T, compute_v=0)
+        w, _, info = _syev(J.dot(J.T), 0)  # no eigenvectors
         lo, hi = float(w[0]), float(w[-1])
         if info != 0 or not math.isfinite(hi):
             return self._fault(state, FaultCause.NON_FINITE, math.nan, weights)
@@ -368,7 +368,7 @@ class Controller:
         new = ControllerState(v_d, qdot, state.mode, state.switch, weights,  # type: ignore[arg-type]
                               state.cycle + 1, state.reduced)
         out = StepOutputs(v_d, qdot, qdot[:6], qdot[6:], e_meas, e_cmd, lim.scale * lim.final_scale,
-                          lim.accel_scale, kin.p, p_des, cond, None, J @ qd_meas, lim.limit)
+                          lim.accel_scale, kin.p, p_des, cond, None, J.dot(qd_meas), lim.limit)
         return new, out
 
     def _singularity_scale(self, q: Vec, qdot: Vec, cond: float) -> float:
@@ -385,7 +385,7 @@ class Controller:
         min(sqrt(2 k a (r - r_stop)), (r - r_stop) / tau): in joint space the usual
         sqrt(2 a d) curve, ending in an exponential approach (tau 50 ms).  1 when the
         command moves away (r rising)."""
-        speed = float(np.max(np.abs(qdot[:6])))
+        speed: float = max(map(abs, qdot[:6].tolist()))
         if speed <= 0.0:
             return 1.0
         r = 1.0 / math.sqrt(cond)

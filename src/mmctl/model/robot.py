@@ -29,6 +29,7 @@ from typing import NamedTuple
 import numpy as np
 import pinocchio as pin
 from numpy.typing import NDArray
+from scipy.linalg import lapack
 
 from mmctl.config.robot import RobotConfig
 from mmctl.errors import ModelError
@@ -41,6 +42,7 @@ NA = 6  #: arm joints
 FRAMES = ("base", "arm_base", "flange", "sensor", "tool")
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+_syev = lapack.dsyev
 _EMPTY = np.zeros((0, 0))
 
 
@@ -180,14 +182,25 @@ class RobotModel:
 
     def jacobian(self, q: Mat) -> Mat:
         """The (6, 9) whole-body Jacobian J = [J_a J_b] of the tool, control frame."""
-        return self.update(q, inertia=False).J
+        model, data = self.arm, self.arm_data
+        pin.computeJointJacobians(model, data, np.asarray(q[:NA], dtype=float))
+        x, y, _ = pin.updateFramePlacement(model, data, self._tool).translation.tolist()
+        J = self._J_template.copy()  # base columns' constant entries preset
+        J[:, :NA] = pin.getFrameJacobian(model, data, self._tool, _LWA)
+        J[0, 8] = -y
+        J[1, 8] = x
+        return J
 
     def condition(self, q: Mat) -> float:
         """The condition number of J J^T at ``q`` (9,) (inf where it is singular): the
-        controller's singularity measure."""
+        controller's singularity measure (the Jacobian alone and LAPACK's ``syev``:
+        the controller's singularity braking asks for it every cycle)."""
         jac = self.jacobian(q)
-        w = np.linalg.eigvalsh(jac @ jac.T)
-        return float(w[-1] / w[0]) if w[0] > 0.0 else math.inf
+        w, _, info = _syev(jac.dot(jac.T), compute_v=0)
+        if info != 0:  # as numpy.linalg.eigvalsh says it (a NaN in q)
+            raise np.linalg.LinAlgError("Eigenvalues did not converge")
+        lo, hi = w[0], w[-1]
+        return float(hi / lo) if lo > 0.0 else math.inf
 
     def arm_inertia(self, q_a: Mat) -> Mat:
         """M_a(q_a) (6, 6) [kg m^2], UR10e joint-space inertia (CRBA)."""
@@ -229,8 +242,9 @@ class RobotModel:
         J[:, :NA] = pin.getFrameJacobian(model, data, self._tool, _LWA)
         J[0, 8] = -y
         J[1, 8] = x
-        c, s = math.cos(q[8]), math.sin(q[8])
-        p = np.array((q[6] + c * x - s * y, q[7] + s * x + c * y, z))
+        bx, by, yaw = q[NA:].tolist()
+        c, s = math.cos(yaw), math.sin(yaw)
+        p = np.array((bx + c * x - s * y, by + s * x + c * y, z))
         M_a = pin.crba(model, data, q_a) if inertia else _EMPTY
         M_full = self.coupled_inertia(q_a) if (inertia and self.full_inertia) else None
         return Kinematics(J, M_a, self.M_b, M_full, p_base, pose.rotation.copy(), p)
