@@ -144,6 +144,7 @@ def test_a_frozen_daemon_leaves_the_arm_at_rest(daemon: Daemon) -> None:
         if full["state"] == "armed" and speed > 0.02 and wheels > 0.05:
             break
     assert speed > 0.02 and wheels > 0.05, st
+    frozen_at = float(st["arm_time"])  # the fake controller's clock at the freeze
     os.kill(daemon.proc.pid, signal.SIGSTOP)
     frozen = 3.0
     time.sleep(frozen)
@@ -173,7 +174,9 @@ def test_a_frozen_daemon_leaves_the_arm_at_rest(daemon: Daemon) -> None:
     daemon.proc.send_signal(signal.SIGTERM)
     assert daemon.proc.wait(120) == 0, daemon.log_text()[-3000:]
     programs = [c for c in daemon.ur_log() if c["kind"] == "program"]
-    stops = [c for c in programs if c["text"].startswith("stopped (rtde watchdog")]
+    # (a load-caused stop before the freeze was re-armed above: counted from the freeze)
+    stops = [c for c in programs if c["text"].startswith("stopped (rtde watchdog")
+             and c["controller_time"] >= frozen_at]
     assert len(stops) == 1, programs
 
 

@@ -405,10 +405,11 @@ class Update:
                 if s.safety.armed:
                     return s, (), False
                 sf = s.safety
+                present = sf.active.keys() | conditions.keys()  # this cycle's reads too
                 links = []
-                if sf.active.keys() & ARM_RECONNECT_CAUSES or sf.latched in ARM_RECONNECT_CAUSES:
+                if present & ARM_RECONNECT_CAUSES or sf.latched in ARM_RECONNECT_CAUSES:
                     links.append("arm")
-                if FaultCause.SENSOR_LINK in sf.active or sf.latched is FaultCause.SENSOR_LINK:
+                if FaultCause.SENSOR_LINK in present or sf.latched is FaultCause.SENSOR_LINK:
                     links.append("sensor")
                 return s, tuple(links), False
             case EnableCheck():

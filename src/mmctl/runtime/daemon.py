@@ -217,6 +217,9 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         self._sensor_request: Callable[[], None] | None = getattr(
             devices.sensor, "request_next", None)
         self._request_at_start = cfg.loop.sensor_request == "start"
+        #: a sensor in a process of its own: told the loop's grid in the first cycle
+        self._phase_sensor: Callable[[int, float], None] | None = getattr(
+            devices.sensor, "set_phase", None)
         #: the newest tool-load calibration (`mmctl calibrate tool`) and its fit
         self.calibration: ToolCalibration | None = None
         self.calibration_fit: ToolLoadFit | None = None

@@ -92,4 +92,16 @@ def open_devices(cfg: Config) -> Devices:
 
     # ur_rtde in a process of its own: its crashes, hangs and GIL-holding calls stay there
     arm = UrRtdeProcessArm(cfg.arm, cfg.limits, mmctl_logging.CURRENT)
-    return Devices(arm=arm, sensor=open_sensor(cfg.sensor), base=open_base(cfg))
+    sensor: ForceSensor
+    if cfg.sensor.process:  # its own process: the loop only reads the newest sample
+        from mmctl.transports.sensor.link_process import SensorLinkProcess
+
+        period = 1.0 / cfg.loop.rate_hz
+        sensor = SensorLinkProcess(cfg.sensor, period=period,
+                                   lead=min(cfg.sensor.process_lead, 0.5 * period),
+                                   rt_priority=cfg.loop.rt_priority,
+                                   cpu_affinity=cfg.loop.cpu_affinity,
+                                   log_setup=mmctl_logging.CURRENT)
+    else:
+        sensor = open_sensor(cfg.sensor)
+    return Devices(arm=arm, sensor=sensor, base=open_base(cfg))

@@ -188,6 +188,9 @@ class CycleDriver(_Parts):
         row = self.cycles % self.phase_ns.shape[1]
         phase = self.phase_ns
         phase[3, row] = phase[4, row] = phase[5, row] = 0
+        if self._phase_sensor is not None:  # once: the sensor's process polls on our grid
+            self._phase_sensor(tick.deadline_ns, tick.period)
+            self._phase_sensor = None
         readings = self._read(tick, row)
         t0 = time.perf_counter_ns()
         state, commands, events = self.update(self.ustate, readings, [c for c, _ in inbox])

@@ -66,6 +66,7 @@ class DaemonParts:
     _arm_reconnect: threading.Lock
     _base_busy: bool
     _sensor_busy: bool
+    _phase_sensor: Callable[[int, float], None] | None
     _base_enable: threading.Lock
     _commands: queue.SimpleQueue[tuple[Any, Future[Any]]]
     _stop_requested: threading.Event
