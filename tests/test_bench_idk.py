@@ -15,7 +15,7 @@ def test_bench_idk_json(capsys: pytest.CaptureFixture[str]) -> None:
     data = json.loads(out)
     strategies = data["strategies"]
     for name in ("min-energy", "locomotion", "manipulation", "constrained-min-energy",
-                 "constrained-from-rest", "min-energy-full-inertia"):
+                 "constrained-from-rest", "min-energy-full-inertia", "min-energy-no-avoidance"):
         assert strategies[name]["p50_us"] > 0.0
         assert strategies[name]["p99_us"] >= strategies[name]["p50_us"]
     assert data["paper_inv"]["p99_us"] >= data["paper_inv"]["p50_us"] > 0.0
@@ -24,6 +24,7 @@ def test_bench_idk_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert data["step"]["p50_us"] > 0.0
     assert data["cycles"] == 30
     assert data["median_abs_diff_vs_paper"] < 1e-6  # same answer as the paper's formula
+    assert 0.0 <= data["hand_over_share"] <= 1.0
     assert "bench idk: 30/30" in err  # progress goes to stderr
 
 
@@ -31,5 +32,6 @@ def test_bench_idk_table_and_bad_cycles(capsys: pytest.CaptureFixture[str]) -> N
     assert main(["bench", "idk", "--cycles", "20", "--no-osqp"]) == 0
     out = capsys.readouterr().out
     assert "min-energy" in out and "paper_inv" in out and "step (whole cycle)" in out
+    assert "min-energy-no-avoidance" in out and "hands a joint over in" in out
     assert main(["bench", "idk", "--cycles", "0"]) == 2
     assert "--cycles = 0: must be >= 1" in capsys.readouterr().err

@@ -78,37 +78,46 @@ def hand_over(x: Vec, lb: Vec, ub: Vec, J: Vec, v_d: Vec,
 
 def _hand_over(x: Vec, lo: list[float], hi: list[float], J: Vec, v_d: Vec,
                resolve: Callable[[NDArray[np.bool_], Vec], Vec], rounds: int = 3) -> Vec:
-    """:func:`hand_over` with the bounds as lists: the bookkeeping on nine numbers is
-    done in Python floats, where numpy's cost per call would be most of the time."""
+    """:func:`hand_over` with the bounds as lists (``lo <= hi``): the bookkeeping on
+    nine numbers in Python floats, where numpy's cost per call would be most of the
+    time (one resolve costs about what the whole solve does)."""
     tol = 1e-12
-    pinned = [False] * len(lo)
+    n = len(lo)
+    pinned: dict[int, float] = {}  # coordinate -> its bound, where it is pinned
     xs = x.tolist()
     for _ in range(rounds):
-        out = [v < a - tol or v > b + tol for v, a, b in zip(xs, lo, hi)]
-        if True not in out:
+        crossed = False
+        for i, v in enumerate(xs):
+            if v < lo[i] - tol:
+                pinned[i], crossed = lo[i], True
+            elif v > hi[i] + tol:
+                pinned[i], crossed = hi[i], True
+        if not crossed:
             return x
-        pinned = [p or o for p, o in zip(pinned, out)]
-        if pinned.count(False) < 6:
+        if n - len(pinned) < 6:
             break
-        # the pinned coordinates at their bounds (np.clip's min(max(x, lb), ub))
-        xs = [min(max(v, a), b) if p else v for v, a, b, p in zip(xs, lo, hi, pinned)]
-        x_pinned = np.array([v if p else 0.0 for v, p in zip(xs, pinned)])
-        x_free = iter(resolve(_free_mask(tuple(pinned)), v_d - J.dot(x_pinned)).tolist())
-        xs = [v if p else next(x_free) for v, p in zip(xs, pinned)]
+        idx = tuple(sorted(pinned))
+        x_pinned = np.zeros(n)
+        for i in idx:
+            x_pinned[i] = pinned[i]
+        xs = resolve(_free_mask(n, idx), v_d - J.dot(x_pinned)).tolist()
+        for i in idx:
+            xs.insert(i, pinned[i])
         x = np.array(xs)
     return np.array([min(max(v, a), b) for v, a, b in zip(xs, lo, hi)])  # np.clip
 
 
-_FREE_MASKS: dict[tuple[bool, ...], NDArray[np.bool_]] = {}
+_FREE_MASKS: dict[tuple[int, tuple[int, ...]], NDArray[np.bool_]] = {}
 
 
-def _free_mask(pinned: tuple[bool, ...]) -> NDArray[np.bool_]:
-    """The (read-only) mask of the coordinates not ``pinned``, made once per pattern."""
-    mask = _FREE_MASKS.get(pinned)
+def _free_mask(n: int, pinned: tuple[int, ...]) -> NDArray[np.bool_]:
+    """The (read-only) mask of the ``n`` coordinates but ``pinned``, made once each."""
+    mask = _FREE_MASKS.get((n, pinned))
     if mask is None:
-        mask = ~np.array(pinned)
+        mask = np.ones(n, dtype=bool)
+        mask[list(pinned)] = False
         mask.setflags(write=False)
-        _FREE_MASKS[pinned] = mask
+        _FREE_MASKS[(n, pinned)] = mask
     return mask
 
 
