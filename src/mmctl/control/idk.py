@@ -75,7 +75,7 @@ def solve_spd(a: Vec, b: Vec) -> Vec:
 
     Falls back to least squares (SVD) when ``a`` is not numerically positive definite.
     """
-    _, x, info = _posv(a, b, lower=1)
+    _, x, info = _posv(a, b, 1)  # lower
     if info != 0:
         x = np.linalg.lstsq(a, b, rcond=None)[0]
     sol: Vec = x
@@ -206,8 +206,8 @@ def null_project(
 
     ``x`` is the projected vector; the eigenvalues are those of ``J J^T``.
     """
-    sol = damped_task_solve(J @ J.T, J @ z, threshold, max_damping)
-    return sol._replace(x=z - J.T @ sol.x)
+    x, lam_min, lam_max, delta = _damped(J.dot(J.T), J.dot(z), threshold, max_damping)
+    return TaskSolve(z - J.T.dot(x), lam_min, lam_max, delta)
 
 
 def weighted_dls(
@@ -232,13 +232,13 @@ def weighted_dls(
     n = J.shape[1]
     wa = _weights(W_alpha, 6, "W_alpha")
     wb = _weights(W_beta, n, "W_beta")
-    jtw = J.T * wa if wa.ndim == 1 else J.T @ wa
-    h = jtw @ J
+    jtw = J.T * wa if wa.ndim == 1 else J.T.dot(wa)
+    h = jtw.dot(J)
     if wb.ndim == 1:
-        h[np.diag_indices(n)] += wb
+        h.ravel()[::n + 1] += wb  # the diagonal (h is contiguous: ravel is a view)
     else:
         h = h + wb
-    out = solve_spd(h, jtw @ _as_vec(v_d))
+    out = solve_spd(h, jtw.dot(_as_vec(v_d)))
     if qdot_null is not None:
-        out = out + null_project(J, _as_vec(qdot_null), singular_threshold, max_damping).x
+        out += null_project(J, _as_vec(qdot_null), singular_threshold, max_damping).x
     return out
