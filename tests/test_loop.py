@@ -191,3 +191,31 @@ def test_the_wait_is_the_one_given_at_construction() -> None:
     _run(loop, done)
     assert [t.deadline_ns for t in ticks] == seen[:len(ticks)]
     assert all(t.wake_ns == t.deadline_ns + 12_345 for t in ticks)
+
+
+def test_the_garbage_collector_runs_in_the_slack_only() -> None:
+    """GcInSlack: automatic collection off while the loop runs; a collection every
+    ``every`` cycles when the next deadline leaves ``margin`` (else the next cycle with
+    slack); the middle generation once a second, all three once a minute; back on after."""
+    import gc
+
+    from mmctl.runtime.loop import GcInSlack
+
+    assert gc.isenabled()
+    g = GcInSlack(every=2, margin_ns=1_000_000, rate_hz=4.0)  # 2 a second, 120 a minute
+    g.start()
+    try:
+        assert not gc.isenabled()
+        far = time.perf_counter_ns() + 10**12
+        g.after_cycle(far)
+        assert g.collections == [0, 0, 0]  # one cycle: not yet
+        g.after_cycle(time.perf_counter_ns())  # due, but no slack: waits
+        assert g.collections == [0, 0, 0]
+        g.after_cycle(far)
+        assert g.collections == [1, 0, 0]
+        for _ in range(2 * 119):
+            g.after_cycle(far)
+        assert g.collections == [60, 59, 1] and g.worst_ns > 0
+    finally:
+        g.stop()
+    assert gc.isenabled()

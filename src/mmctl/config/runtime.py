@@ -52,6 +52,25 @@ class LoopConfig:
         "the loop thread waiting for the interpreter",
         why="from a microsecond to 50 periods at 500 Hz",
     )
+    gc_in_slack: bool = param(
+        True,
+        doc="keep Python's garbage collector out of the cycle: automatic collection off "
+        "while the loop runs, the young generation collected in a cycle's slack every "
+        "gc_every cycles, the older ones every second and minute, each only when at "
+        "least gc_margin is left before the next deadline (start-up objects are frozen "
+        "out of every collection either way)",
+        why="an automatic collection runs in whichever allocation crosses its threshold, "
+        "the loop's included")
+    gc_every: int = param(
+        50, ge=1, le=100_000,
+        doc="with gc_in_slack: cycles between two collections of the young generation",
+        why="10 Hz at 500 Hz; the young generation then holds a few thousand objects")
+    gc_margin: float = param(
+        0.0008, unit="s", ge=0.0, le=0.1,
+        doc="with gc_in_slack: the least time left before the next deadline for a "
+        "collection to run in this cycle's slack (else the next cycle's)",
+        why="a young-generation collection takes tens of microseconds, a full one up to "
+        "a few hundred")
     timing_samples: int = param(
         8192, ge=2, le=1_048_576, doc="cycles kept in the timing ring",
         why="2^20 cycles is 35 min at 500 Hz, ~25 MB of ring")

@@ -53,7 +53,7 @@ from mmctl.runtime.devices import Devices
 from mmctl.runtime.ipc import ControlServer, Handler
 from mmctl.runtime.ipc_process import ProcessControlServer
 from mmctl.runtime.logging import RateLimiter
-from mmctl.runtime.loop import CycleLoop, Wait
+from mmctl.runtime.loop import CycleLoop, GcInSlack, Wait
 
 if TYPE_CHECKING:
     from mmctl.control.calibration import ToolCalibration, ToolLoadFit
@@ -173,6 +173,8 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
             max_total_misses=cfg.loop.max_total_misses, ring=self.ring,
             rt_priority=cfg.loop.rt_priority, cpu_affinity=cfg.loop.cpu_affinity,
             wait=loop_wait,
+            gc_slack=GcInSlack(cfg.loop.gc_every, round(cfg.loop.gc_margin * 1e9),
+                               cfg.loop.rate_hz) if cfg.loop.gc_in_slack else None,
         )
         self.period = 1.0 / cfg.loop.rate_hz
         # status: a snapshot (inline, on the socket's selector thread); stop and disable
@@ -507,7 +509,10 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
                            "since_start": since,
                            "since_start_pct": round(100.0 * since / max(loop.cycles + since, 1),
                                                     3)},
-                "budget_misses": loop.total_misses}
+                "budget_misses": loop.total_misses,
+                **({} if loop.gc_slack is None else {"gc_in_slack": {
+                    "collections": list(loop.gc_slack.collections),
+                    "worst_us": round(loop.gc_slack.worst_ns / 1e3, 1)}})}
 
     def _measured(self, last: CycleResult) -> dict[str, Any]:
         """The robot's motion as measured (end-effector and base speed, E_K from the

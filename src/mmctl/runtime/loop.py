@@ -143,6 +143,58 @@ class PlainSleep:
         return clock()
 
 
+class GcInSlack:
+    """Python's garbage collector run in the loop's slack instead of in whichever
+    allocation crosses a threshold (the cycle's among them).
+
+    While the loop runs, automatic collection is off; after a cycle, when ``every``
+    cycles have passed and at least ``margin_ns`` are left before the next deadline,
+    the young generation is collected (every second: the middle one too; every minute:
+    all three).  Anything a collection would take from the next cycle waits for a
+    cycle with slack.  ``collections`` counts them per generation, ``worst_ns`` is the
+    longest.  :meth:`stop` turns automatic collection back on.
+    """
+
+    def __init__(self, every: int, margin_ns: int, rate_hz: float):
+        self.every = max(1, int(every))
+        self.margin_ns = int(margin_ns)
+        self.per_second = max(1, round(rate_hz / self.every))
+        self.per_minute = 60 * self.per_second
+        self.collections = [0, 0, 0]
+        self.worst_ns = 0
+        self._since = 0
+        self._n = 0
+        self._was_enabled = True
+
+    def start(self) -> None:
+        import gc
+
+        self._was_enabled = gc.isenabled()
+        gc.disable()
+
+    def stop(self) -> None:
+        import gc
+
+        if self._was_enabled:
+            gc.enable()
+
+    def after_cycle(self, next_deadline_ns: int) -> None:
+        self._since += 1
+        if self._since < self.every:
+            return
+        t0 = time.perf_counter_ns()
+        if next_deadline_ns - t0 < self.margin_ns:
+            return  # no slack this cycle: the next one
+        import gc
+
+        self._n += 1
+        gen = 2 if self._n % self.per_minute == 0 else 1 if self._n % self.per_second == 0 else 0
+        gc.collect(gen)
+        self.collections[gen] += 1
+        self.worst_ns = max(self.worst_ns, time.perf_counter_ns() - t0)
+        self._since = 0
+
+
 class CycleLoop:
     """Runs ``body(tick)`` every period on its own thread.
 
@@ -165,6 +217,7 @@ class CycleLoop:
         cpu_affinity: Sequence[int] = (),
         name: str = "mmctl-loop",
         wait: Wait | None = None,
+        gc_slack: GcInSlack | None = None,
     ):
         if rate_hz <= 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
@@ -178,6 +231,8 @@ class CycleLoop:
         self.cpu_affinity = tuple(cpu_affinity)
         self.name = name
         self.error: BaseException | None = None
+        #: the garbage collector's schedule in the cycles' slack (None: Python's own)
+        self.gc_slack = gc_slack
         self._stop = threading.Event()
         self._done = threading.Event()
         self._thread: threading.Thread | None = None
@@ -233,6 +288,9 @@ class CycleLoop:
         ring = self.ring
         body = self._body
         wait = self.wait_for_deadline
+        gc_slack = self.gc_slack
+        if gc_slack is not None:
+            gc_slack.start()
         deadline = clock() + period
         try:
             while not self._stop.is_set():
@@ -260,8 +318,12 @@ class CycleLoop:
                 ring.record(this_deadline, wake - this_deadline, end - wake,
                             deadline - missed * period - end, missed)
                 self.cycles += 1
+                if gc_slack is not None:
+                    gc_slack.after_cycle(deadline)
         except BaseException as exc:  # noqa: BLE001 -- stored, re-raised by join()
             self.error = exc
             log.error("loop_crashed", error=repr(exc), cycle=self.cycles)
         finally:
+            if gc_slack is not None:
+                gc_slack.stop()
             self._done.set()
