@@ -272,7 +272,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             cfg.sensor.can, interface="socketcand", host=args.host)),
         base=dataclasses.replace(cfg.base, canopen=dataclasses.replace(
             cfg.base.canopen, interface="socketcand", host=args.host)),
-        daemon=dataclasses.replace(cfg.daemon, socket_process=not args.in_process),
         loop=dataclasses.replace(cfg.loop, rt_priority=args.rt_priority,
                                  cpu_affinity=() if args.loop_cpu is None else (args.loop_cpu,),
                                  timing_samples=int(cfg.loop.rate_hz * 3 *
@@ -282,7 +281,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     )
     path = tmp / "mmctl.sock"
     daemon = create_daemon(cfg, socket_path=path)
-    out: dict[str, Any] = {"socket_process": not args.in_process,
+    out: dict[str, Any] = {"socket_process": True,
                            "rt_priority": args.rt_priority, "loop_cpu": args.loop_cpu,
                            "sim_priority": args.sim_priority, "client_nice": args.client_nice,
                            "window_s": args.window, "rounds": args.rounds, "hold": args.hold,
@@ -407,9 +406,6 @@ def main() -> int:
                    help="pin the loop to CPU N (loop.cpu_affinity, as on the robot) and run "
                    "everything else (the simulated robot, the socket's process, the "
                    "clients) on the other CPUs")
-    p.add_argument("--in-process", action="store_true",
-                   help="serve the control socket on the daemon's threads "
-                   "(daemon.socket_process: false) instead of its own process")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
     global CLIENT_NICE, CLIENT_CPUS

@@ -129,10 +129,6 @@ class DaemonConfig:
         "", doc="control socket; '' = $RUNTIME_DIRECTORY or $XDG_RUNTIME_DIR or /tmp, + mmctl.sock"
     )
     socket_mode: int = param(0o660, ge=0, le=0o777, why="file permission bits (0o777 at most)")
-    socket_process: bool = param(
-        True, doc="serve the control socket from a process of its own that hands the daemon "
-        "only complete, rate-limited requests (a flood of clients then costs the loop nothing "
-        "but those); false: on threads in the daemon's process")
     ready_timeout: float = param(
         10.0, unit="s", ge=0.1, le=600.0,
         doc="READY=1 is sent after the first healthy cycle, or after this long regardless",

@@ -50,7 +50,7 @@ from mmctl.errors import FaultCause, MmctlError
 from mmctl.runtime.calibrate import CalibrationCommands
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.devices import Devices
-from mmctl.runtime.ipc import ControlServer, Handler
+from mmctl.runtime.ipc import Handler
 from mmctl.runtime.ipc_process import ProcessControlServer
 from mmctl.runtime.logging import RateLimiter
 from mmctl.runtime.loop import CycleLoop, GcInSlack, Wait
@@ -97,13 +97,12 @@ STATS_WINDOW = 5.0
 MEASURED_MAX_AGE = 5
 
 
-def _control_server(cfg: Config, path: Path, handler: Handler) -> ControlServer | ProcessControlServer:
-    """The control socket: ``status`` from the snapshot (inline), ``stop`` and ``disable``
-    never queued behind other clients' requests (see :mod:`mmctl.runtime.ipc`); in a
-    process of its own unless ``daemon.socket_process`` is false."""
+def _control_server(cfg: Config, path: Path, handler: Handler) -> ProcessControlServer:
+    """The control socket, in a process of its own (:mod:`mmctl.runtime.ipc_process`: it
+    hands the daemon only complete, rate-limited requests): ``status`` from the snapshot
+    (inline), ``stop`` and ``disable`` never queued behind other clients' requests (see
+    :mod:`mmctl.runtime.ipc`)."""
     kw: dict[str, Any] = {"inline": ("status",), "urgent": ("stop", "disable")}
-    if not cfg.daemon.socket_process:
-        return ControlServer(path, handler, cfg.daemon.socket_mode, **kw)
     from mmctl.runtime import logging as mmctl_logging
 
     cpus: tuple[int, ...] = ()
