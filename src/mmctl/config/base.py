@@ -97,6 +97,15 @@ class BaseConfig:
     """Omnidirectional base."""
 
     transport: Literal["canopen", "serial"] = param("canopen")
+    process: bool = param(
+        False,
+        doc="run the transport in a process of its own that publishes odometry and the "
+        "drives' health into a shared-memory mailbox and sends the loop's commands the "
+        "moment they are left in another (docs/mailbox.md); false: the loop's own thread "
+        "sends and reads",
+        why="the loop then never waits on the base's link: a twist costs the loop a "
+        "mailbox write and a wake-up instead of five CAN frames through the client "
+        "library")
     mecanum: MecanumConfig = sub(MecanumConfig)
     canopen: CanopenConfig = sub(CanopenConfig)
     serial: SerialConfig = sub(SerialConfig)

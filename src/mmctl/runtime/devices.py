@@ -104,4 +104,16 @@ def open_devices(cfg: Config) -> Devices:
                                    log_setup=mmctl_logging.CURRENT)
     else:
         sensor = open_sensor(cfg.sensor)
-    return Devices(arm=arm, sensor=sensor, base=open_base(cfg))
+    base: Base
+    co = cfg.base.canopen  # python-can's `virtual` bus: no other process reaches it
+    if cfg.base.process and not (cfg.base.transport == "canopen" and co.interface == "virtual"):
+        from mmctl.transports.base.link_process import BaseLinkProcess
+
+        # its own process: the loop reads the newest odometry and leaves its commands
+        base = BaseLinkProcess(cfg, period=1.0 / cfg.loop.rate_hz,
+                               rt_priority=cfg.loop.rt_priority,
+                               cpu_affinity=cfg.loop.cpu_affinity,
+                               log_setup=mmctl_logging.CURRENT)
+    else:
+        base = open_base(cfg)
+    return Devices(arm=arm, sensor=sensor, base=base)

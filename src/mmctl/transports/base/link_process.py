@@ -24,6 +24,10 @@ itself a :class:`~mmctl.transports.base.protocol.Base`:
   and obeying commands (as the loop thread goes on beside an enable in-process).  Before
   it replies, the child publishes a fresh record, so a fault cleared by ``enable`` is
   gone from the mailbox when ``enable`` returns.  Off the loop thread, by contract.
+  While ``enable`` or ``reconnect`` runs, the child takes no health sample (they reset
+  and rebuild the transport's health state; a sample taken half-way would latch a fault
+  the enable has just cleared; in-process the loop leaves the base alone meanwhile):
+  the records age, commands are still obeyed.
 
 Errors are the transport's own: ``read_odometry`` raises what the in-process
 transport's raised in the child (``SafetyFault`` with its cause and details,
