@@ -6,6 +6,7 @@ import math
 import time
 import uuid
 from collections.abc import Iterator
+from contextlib import ExitStack
 from typing import Any
 
 import pytest
@@ -14,24 +15,38 @@ from mmctl.config import config_from_dict
 from mmctl.errors import FaultCause, SafetyFault, TransportError
 from mmctl.sim.fake_drives import FakeDrives
 from mmctl.sim.fake_serial_bridge import FakeSerialBridge
+from mmctl.sim.socketcand import SocketcandServer
 from mmctl.transports.base import Base, open_base
+from mmctl.transports.base.link_process import BaseLinkProcess
 from mmctl.types import Odometry, Twist
 
 
-@pytest.fixture(params=["canopen", "serial"])
+@pytest.fixture(params=["canopen", "serial", "canopen-process"])
 def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Base, Any]]:
-    """An unconnected Base from open_base() and the running fake it talks to."""
-    cfg = config_from_dict({"base": {
-        "transport": request.param,
-        "canopen": {"interface": "virtual", "channel": f"contract-{uuid.uuid4().hex[:10]}",
-                    "heartbeat_timeout": 5.0,
-                    "sdo_timeout": 5.0},
-        "serial": {"link_timeout": 5.0, "timeout": 1.0},
-        "command_watchdog": 2.0,  # a stalled test is not a dead master
-    }})
-    fake: Any = FakeDrives(cfg) if request.param == "canopen" else FakeSerialBridge(cfg)
-    with fake:
-        base = open_base(cfg, port=getattr(fake, "port", None))
+    """An unconnected Base from open_base() and the running fake it talks to;
+    ``canopen-process``: the CANopen transport in a BaseLinkProcess's child, which
+    reaches the fake drives through the simulated robot's socketcand server (a
+    ``virtual`` bus is reached from its own process only)."""
+    process = request.param == "canopen-process"
+    kind = "canopen" if process else request.param
+    with ExitStack() as stack:
+        canopen: dict[str, Any] = {"interface": "virtual"}
+        if process:
+            host = request.getfixturevalue("loopback_host")
+            server = stack.enter_context(SocketcandServer(host, port=0))
+            canopen = {"interface": "socketcand", "host": host, "port": server.address[1]}
+        cfg = config_from_dict({"base": {
+            "transport": kind,
+            "canopen": {**canopen, "channel": f"contract-{uuid.uuid4().hex[:10]}",
+                        "heartbeat_timeout": 5.0,
+                        "sdo_timeout": 5.0},
+            "serial": {"link_timeout": 5.0, "timeout": 1.0},
+            "command_watchdog": 2.0,  # a stalled test is not a dead master
+        }})
+        fake: Any = FakeDrives(cfg) if kind == "canopen" else FakeSerialBridge(cfg)
+        stack.enter_context(fake)
+        base: Base = BaseLinkProcess(cfg) if process else \
+            open_base(cfg, port=getattr(fake, "port", None))
         try:
             yield base, fake
         finally:
