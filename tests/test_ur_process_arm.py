@@ -12,14 +12,15 @@ from __future__ import annotations
 import os
 import signal
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mmctl.config import config_from_dict
 from mmctl.errors import FaultCause, SafetyFault
-from mmctl.sim.fake_ur import CommandKind, FakeURController, start_fake_ur
+from mmctl.sim.fake_ur import CommandKind, FakeCommand, FakeURController, start_fake_ur
 from mmctl.transports.arm import Arm
 from mmctl.transports.ur_rtde_process import UrRtdeProcessArm
 
@@ -139,3 +140,158 @@ def test_a_crashed_child_is_arm_disconnected_and_reconnect_recovers(
         healthy(arm)
     finally:
         arm.close()
+
+
+# -- the mailboxes (issue 28): counted, never timed -------------------------------------
+
+def segments() -> set[str]:
+    """This process's mailbox segments in /dev/shm (named mmctl-<layout>-<pid>-<random>)."""
+    return {n for n in os.listdir("/dev/shm")
+            if n.startswith("mmctl-ur_arm_") and f"-{os.getpid()}-" in n}
+
+
+def is_stop(c: FakeCommand) -> bool:
+    return c.kind is CommandKind.SPEED_STOP or (c.kind is CommandKind.SPEEDJ
+                                                and c.qd is not None and not any(c.qd))
+
+
+def motions(fake: FakeURController, since: int) -> list[FakeCommand]:
+    """speedJ and speedStop the fake received from its log entry ``since`` on."""
+    return [c for c in fake.commands() if c.seq >= since
+            and c.kind in (CommandKind.SPEEDJ, CommandKind.SPEED_STOP)]
+
+
+def wait_for_log(arm: UrRtdeProcessArm, fake: FakeURController, since: int,
+                 pred: Callable[[FakeCommand], bool]) -> None:
+    """Cycles (reads and kicks) until the fake logged a motion command ``pred`` takes."""
+    deadline = time.monotonic() + 30.0
+    while not any(pred(c) for c in motions(fake, since)):
+        assert time.monotonic() < deadline, "the command never reached the controller"
+        cycles(arm, 10)  # kicks: the controller's watchdog stays fed
+
+
+def test_a_read_never_waits_for_the_child(fake: FakeURController) -> None:
+    """With the child stopped (SIGSTOP), reads keep returning the newest sample at once,
+    until ``stale_cycles`` reads without a new one are ARM_STALE: counted, not timed (a
+    read that waited for the child would hang here)."""
+    arm = make_arm(fake.host)
+    arm.connect()
+    try:
+        healthy(arm)
+        child = arm.pid
+        assert child is not None
+        os.kill(child, signal.SIGSTOP)
+        try:
+            stat = Path(f"/proc/{child}/stat")
+            while stat.read_text().rsplit(")", 1)[1].split()[0] != "T":
+                time.sleep(0.001)  # until it is stopped: no record after this
+            times, fault = [], None
+            for _ in range(10 * arm.config.stale_cycles):
+                try:
+                    times.append(arm.read_state().controller_time)
+                except SafetyFault as exc:
+                    fault = exc
+                    break
+        finally:
+            os.kill(child, signal.SIGCONT)
+        assert fault is not None and fault.cause is FaultCause.ARM_STALE, fault
+        # the first read may still take a record published before the stop
+        assert arm.config.stale_cycles - 1 <= len(times) <= arm.config.stale_cycles
+        assert len(set(times[1:])) <= 1
+        arm.reconnect()
+        healthy(arm)
+    finally:
+        arm.close()
+
+
+def test_a_burst_of_speed_j_then_stop_reaches_the_controller_stop_last(
+        fake: FakeURController) -> None:
+    """speed_j 200 times back to back, then stop: the child may coalesce the burst, but
+    the controller's last motion command is the stop; a speed_j posted after a stop goes
+    out after it."""
+    arm = make_arm(fake.host)
+    arm.connect()
+    try:
+        healthy(arm)
+        since = fake.commands()[-1].seq + 1
+        for i in range(200):
+            arm.speed_j([0.01 * (1 + i % 7), 0, 0, 0, 0, 0], 4.0, PERIOD)
+        arm.stop()
+        wait_for_log(arm, fake, since, is_stop)
+        for _ in range(50):  # anything still on its way lands now
+            cycles(arm, 1, None)
+        sent = motions(fake, since)
+        assert is_stop(sent[-1]), sent[-3:]
+        assert any(not is_stop(c) for c in sent)  # the burst's newest went out first
+
+        healthy(arm)
+        since = fake.commands()[-1].seq + 1
+        arm.speed_j([0.2, 0, 0, 0, 0, 0], 4.0, PERIOD)
+        arm.stop()
+        arm.speed_j([0.05, 0, 0, 0, 0, 0], 4.0, PERIOD)
+        wait_for_log(arm, fake, since, lambda c: c.qd is not None and c.qd[0] == 0.05)
+        sent = motions(fake, since)
+        first_stop = next(i for i, c in enumerate(sent) if is_stop(c))
+        assert sent[-1].qd is not None and sent[-1].qd[0] == 0.05
+        assert first_stop < len(sent) - 1
+    finally:
+        arm.close()
+
+
+def test_a_protective_stop_comes_back_with_its_details_on_every_read(
+        fake: FakeURController) -> None:
+    arm = make_arm(fake.host)
+    arm.connect()
+    try:
+        healthy(arm)
+        fake.set_protective_stop(True)
+        deadline = time.monotonic() + 30.0
+        fault = None
+        while fault is None:
+            assert time.monotonic() < deadline
+            fault = cycles(arm, 10)
+        assert fault.cause is FaultCause.ARM_PROTECTIVE_STOP, fault
+        bits = fault.details["safety_status_bits"]
+        assert isinstance(bits, int) and bits & (1 << 2)
+        raised = 0
+        for _ in range(20):
+            try:
+                arm.read_state()
+            except SafetyFault as exc:
+                assert exc.cause is FaultCause.ARM_PROTECTIVE_STOP
+                raised += 1
+            time.sleep(PERIOD)
+        assert raised == 20  # while the newest record carries it
+    finally:
+        fake.set_protective_stop(False)
+        arm.close()
+
+
+def test_a_killed_child_is_arm_disconnected_and_its_segments_go_at_close(
+        fake: FakeURController) -> None:
+    assert not segments()
+    arm = make_arm(fake.host)
+    arm.connect()
+    try:
+        assert len(segments()) == 2  # state and commands
+        healthy(arm)
+        os.kill(arm.pid, signal.SIGKILL)  # type: ignore[arg-type]
+        deadline = time.monotonic() + 30.0
+        fault = None
+        while fault is None:
+            assert time.monotonic() < deadline
+            fault = cycles(arm, 10)
+        assert fault.cause is FaultCause.ARM_DISCONNECTED, fault
+        assert "arm process ended" in str(fault)
+        for command in (lambda: arm.speed_j([0.1, 0, 0, 0, 0, 0]), arm.kick_watchdog):
+            with pytest.raises(SafetyFault) as info:
+                command()
+            assert info.value.cause is FaultCause.ARM_DISCONNECTED
+        arm.stop()  # never raises
+    finally:
+        arm.close()
+    assert not segments()
+    arm.close()  # twice: nothing
+    arm.connect()
+    arm.close()
+    assert not segments()
