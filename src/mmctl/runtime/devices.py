@@ -83,6 +83,13 @@ class Devices:
         self.connected.clear()
 
 
+def sensor_in_process_of_its_own(cfg: Config) -> bool:
+    """``sensor.process``, unless the sensor is on python-can's in-process ``virtual``
+    bus (no other process reaches it)."""
+    s = cfg.sensor
+    return s.process and not (s.transport == "can" and s.can.interface == "virtual")
+
+
 def open_devices(cfg: Config) -> Devices:
     """The real transports for ``cfg`` (not yet connected)."""
     from mmctl.runtime import logging as mmctl_logging
@@ -93,7 +100,7 @@ def open_devices(cfg: Config) -> Devices:
     # ur_rtde in a process of its own: its crashes, hangs and GIL-holding calls stay there
     arm = UrRtdeProcessArm(cfg.arm, cfg.limits, mmctl_logging.CURRENT)
     sensor: ForceSensor
-    if cfg.sensor.process:  # its own process: the loop only reads the newest sample
+    if sensor_in_process_of_its_own(cfg):  # the loop only reads the newest sample
         from mmctl.transports.sensor.link_process import SensorLinkProcess
 
         period = 1.0 / cfg.loop.rate_hz
