@@ -375,6 +375,8 @@ class BaseLinkProcess:
             with self._lock:
                 self._check_child()
             if self._gone is None:
+                if self._lost is not None:
+                    self._enabled = False  # the transport's reconnect leaves it disabled
                 self._request("reconnect")
                 return
         self.close()
