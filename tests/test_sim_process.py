@@ -319,6 +319,50 @@ def test_a_can_link_cut_under_the_armed_daemon_stops_and_comes_back_on_enable(
             daemon.kill()
 
 
+def test_a_hung_sensor_link_does_not_stop_the_loop(sim: Sim) -> None:
+    """The sensor's link process frozen (SIGSTOP) under the armed daemon: the loop keeps
+    its cycles (counted), the sample's own age makes it sensor_stale, the robot stops;
+    thawed, enable re-arms and the robot moves."""
+    out = sim.tmp / "daemon-hung-sensor.log"
+    sock = sim.tmp / "mmctl.sock"
+
+    def daemon_status() -> dict[str, Any]:
+        st: dict[str, Any] = request(sock, "status", timeout=30.0)
+        return st
+
+    daemon = _run_daemon(sim, out)
+    pid = None
+    try:
+        sim.wait_for(lambda: daemon_status()["state"] == "armed", "the daemon to arm")
+        pid = daemon_status()["process"]["links"]["sensor"]
+        assert isinstance(pid, int) and pid != daemon.pid, daemon_status()["process"]
+        sim.call("push", force=[0.0, 30.0, 0.0])
+        os.kill(pid, signal.SIGSTOP)
+        sim.wait_for(lambda: daemon_status()["state"] == "fault", "the fault")
+        st = daemon_status()
+        assert st["fault"] == "sensor_stale", st
+        c0 = st["cycles"]
+        # the loop cycles on while the sensor's process stays frozen (500 more cycles)
+        sim.wait_for(lambda: daemon_status()["cycles"] > c0 + 500, "500 more cycles")
+        assert daemon_status()["state"] == "fault"
+        os.kill(pid, signal.SIGCONT)
+        pid = None
+        sim.wait_for(lambda: "sensor_stale" not in daemon_status()["conditions"],
+                     "fresh samples again")
+        assert request(sock, "enable", timeout=60.0)["state"] == "armed"
+        p1 = np.array(sim.call("status")["handle_world"])
+        sim.wait_for(lambda: np.array(sim.call("status")["handle_world"])[1] - p1[1] > 0.02,
+                     "the handle to move on along +y")
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(120) == 0, out.read_text()[-3000:]
+    finally:
+        if pid is not None:
+            os.kill(pid, signal.SIGCONT)
+        sim.call("push", force=None)
+        if daemon.poll() is None:
+            daemon.kill()
+
+
 def test_ctrl_c_ends_the_sim_cleanly(tmp_path: Path) -> None:
     s = Sim(tmp_path, _host(3))
     try:

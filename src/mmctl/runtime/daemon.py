@@ -487,6 +487,9 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
             "pid": os.getpid(), "threads": sorted(t.name for t in threading.enumerate()),
             # on the robot and on the simulated robot alike: no simulation code in here
             "simulation_loaded": any(m in sys.modules for m in ("mmctl.sim", "mmctl.study")),
+            # the device links' own processes (None: in this process, or not running)
+            "links": {name: getattr(getattr(self.devices, name), "pid", None)
+                      for name in ("arm", "sensor", "base")},
         }
         if isinstance(self.server, ProcessControlServer):
             # the control socket's own process (None between a crash and its restart)
