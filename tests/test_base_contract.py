@@ -21,17 +21,16 @@ from mmctl.transports.base.link_process import BaseLinkProcess
 from mmctl.types import Odometry, Twist
 
 
-@pytest.fixture(params=["canopen", "serial", "canopen-process"])
+@pytest.fixture(params=["canopen", "serial", "canopen-process", "serial-process"])
 def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Base, Any]]:
     """An unconnected Base from open_base() and the running fake it talks to;
-    ``canopen-process``: the CANopen transport in a BaseLinkProcess's child, which
-    reaches the fake drives through the simulated robot's socketcand server (a
-    ``virtual`` bus is reached from its own process only)."""
-    process = request.param == "canopen-process"
-    kind = "canopen" if process else request.param
+    ``*-process``: the transport in a BaseLinkProcess's child, which reaches the fake
+    drives through the simulated robot's socketcand server (a ``virtual`` bus is reached
+    from its own process only), the fake bridge through its pty."""
+    kind, _, process = str(request.param).partition("-")
     with ExitStack() as stack:
         canopen: dict[str, Any] = {"interface": "virtual"}
-        if process:
+        if process and kind == "canopen":
             host = request.getfixturevalue("loopback_host")
             server = stack.enter_context(SocketcandServer(host, port=0))
             canopen = {"interface": "socketcand", "host": host, "port": server.address[1]}
@@ -45,8 +44,8 @@ def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Base, Any]]:
         }})
         fake: Any = FakeDrives(cfg) if kind == "canopen" else FakeSerialBridge(cfg)
         stack.enter_context(fake)
-        base: Base = BaseLinkProcess(cfg) if process else \
-            open_base(cfg, port=getattr(fake, "port", None))
+        port = getattr(fake, "port", None)
+        base: Base = BaseLinkProcess(cfg, port=port) if process else open_base(cfg, port=port)
         try:
             yield base, fake
         finally:
