@@ -125,8 +125,79 @@ def cycle_workload(cfg: Any, mode: str) -> Workload:
     return Workload(make, run, check)
 
 
+def update_workload(cfg: Any, mode: str) -> Workload:
+    """The whole pure update (:class:`mmctl.control.update.Update`: the chain plus the
+    safety latch, the arm hold, the enabling switch and the button read from the arm
+    sample's inputs, the base divider), armed, on the readings of :func:`cycle_workload`
+    (the enabling contacts held)."""
+    from mmctl.control.cycle import CycleChain
+    from mmctl.control.update import (
+        BeginEnable,
+        Commands,
+        EnableCheck,
+        EnableFinish,
+        Readings,
+        SetMode,
+        Update,
+    )
+    from mmctl.types import ArmState, Odometry, Wrench
+
+    update = Update(cfg, CycleChain(cfg))
+    chain = update.chain
+    dt = chain.dt
+    q_a = np.asarray(cfg.robot.q_des, dtype=float)[:6].copy()
+    q = np.concatenate((q_a, np.zeros(3)))
+    r_sensor = chain.model.fk_base(q, "sensor").rotation
+    raw = chain.wrench.gravity_wrench(r_sensor)
+    rest_f, rest_t = raw[:3].copy(), raw[3:].copy()
+    raw[0] += PUSH_N
+    force, torque = raw[:3].copy(), raw[3:].copy()
+    qd_a = np.zeros(6)
+    held = 0
+    for i in cfg.enabling.inputs:
+        held |= (0 if cfg.enabling.active_low else 1) << i
+    clock = [100.0, 0, 0]  # [s], sensor sample counter, cycle index
+
+    def readings(f: Any, tq: Any) -> Readings:
+        t, seq, k = clock[0] + dt, clock[1] + 1, clock[2] + 1
+        clock[0], clock[1], clock[2] = t, seq, k
+        return Readings(k, t, dt, ArmState(q_a, qd_a, t, 2, 1), Wrench(f, tq, t, seq),
+                        Odometry(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, t), held)
+
+    s = update.initial_state()
+    for cmd in (SetMode(mode), BeginEnable(), EnableCheck(), EnableFinish()):
+        s, _, _ = update(s, readings(rest_f, rest_t), [cmd])
+    if not s.safety.armed:
+        raise RuntimeError(f"the update did not arm: {s.safety.as_dict()}")
+    state = [s]
+    last: list[Commands | None] = [None]
+
+    def make(count: int) -> list[Readings]:
+        return [readings(force, torque) for _ in range(count)]
+
+    def run(items: list[Readings]) -> None:
+        up = update
+        st = state[0]
+        cmds = None
+        for r in items:
+            st, cmds, _ = up(st, r)
+        state[0] = st
+        last[0] = cmds
+
+    def check() -> str | None:
+        c = last[0]
+        if c is None:
+            return "no update ran"
+        if c.stop or c.qd_arm is None or not np.abs(c.qd_arm).max() > 0.0:
+            return f"the last update commanded no motion ({state[0].safety.as_dict()})"
+        return None
+
+    return Workload(make, run, check)
+
+
 #: --target: name -> builder (config, IDK mode) -> Workload
-TARGETS: dict[str, Callable[[Any, str], Workload]] = {"cycle": cycle_workload}
+TARGETS: dict[str, Callable[[Any, str], Workload]] = {"cycle": cycle_workload,
+                                                      "update": update_workload}
 
 
 class Figure(NamedTuple):
