@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -21,6 +22,7 @@ import numpy as np
 import pytest
 
 from mmctl.cli import main
+from mmctl.errors import IpcError
 from mmctl.runtime.ipc import ControlClient, request
 from simconfig import LOAD_PROOF, write_sim_config
 from waiting import wait_while_alive
@@ -164,6 +166,21 @@ def _run_daemon(sim: Sim, out: Path) -> subprocess.Popen[bytes]:
             env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
+def _enable_eventually(sim: Sim, sock: Path, attempts: int = 5) -> dict[str, Any]:
+    """``enable`` until it arms: on a loaded machine a starved simulation can miss the
+    base's SDO answers during an enable (refused: "the base did not enable"); any other
+    refusal is a failure."""
+    for attempt in range(attempts):
+        try:
+            st: dict[str, Any] = request(sock, "enable", timeout=60.0)
+            return st
+        except IpcError as exc:
+            if "the base did not enable" not in str(exc) or attempt == attempts - 1:
+                raise
+            time.sleep(1.0)  # the simulation catches up
+    raise AssertionError("unreachable")
+
+
 def test_run_attaches_to_a_running_sim_and_leaves_it_running(sim: Sim) -> None:
     """`mmctl run` finds the simulation on its socket: it starts none of its own, tares
     and arms (sim.auto_enable), the push that was on all along moves the handle (the
@@ -212,7 +229,7 @@ def test_the_enabling_switch_through_the_fake_urs_inputs(sim: Sim) -> None:
 
     def at_rest() -> bool:
         st = sim.call("status")
-        return max(abs(v) for v in st["arm_qd"] + st["wheel_velocities"]) < 1e-6
+        return bool(max(abs(v) for v in st["arm_qd"] + st["wheel_velocities"]) < 1e-6)
 
     daemon = _run_daemon(sim, out)
     try:
@@ -284,7 +301,7 @@ def test_a_can_link_cut_under_the_armed_daemon_stops_and_comes_back_on_enable(
 
     def at_rest() -> bool:
         st = sim.call("status")
-        return max(abs(v) for v in st["arm_qd"] + st["wheel_velocities"]) < 1e-6
+        return bool(max(abs(v) for v in st["arm_qd"] + st["wheel_velocities"]) < 1e-6)
 
     daemon = _run_daemon(sim, out)
     try:
@@ -301,7 +318,7 @@ def test_a_can_link_cut_under_the_armed_daemon_stops_and_comes_back_on_enable(
             request(sock, "enable", timeout=60.0)
         assert daemon_status()["state"] == "fault"
         sim.call("fault", name=f"{device}_unplugged", on=False)
-        assert request(sock, "enable", timeout=60.0)["state"] == "armed"
+        assert _enable_eventually(sim, sock)["state"] == "armed"
         p1 = handle()
         sim.wait_for(lambda: handle()[1] - p1[1] > 0.02, "the handle to move on along +y")
         daemon.send_signal(signal.SIGTERM)
@@ -349,7 +366,7 @@ def test_a_hung_sensor_link_does_not_stop_the_loop(sim: Sim) -> None:
         pid = None
         sim.wait_for(lambda: "sensor_stale" not in daemon_status()["conditions"],
                      "fresh samples again")
-        assert request(sock, "enable", timeout=60.0)["state"] == "armed"
+        assert _enable_eventually(sim, sock)["state"] == "armed"
         p1 = np.array(sim.call("status")["handle_world"])
         sim.wait_for(lambda: np.array(sim.call("status")["handle_world"])[1] - p1[1] > 0.02,
                      "the handle to move on along +y")

@@ -203,6 +203,7 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
                               "spin_margin_us": cfg.loop.spin_margin * 1e6,
                               "cpus": os.cpu_count(), "loadavg_1min": os.getloadavg()[0]}
     result["idk_step"] = _idk_step(cfg)
+    result["update_back_to_back"] = update_back_to_back(cfg)
     try:
         daemon.open()
         daemon.start()
@@ -234,7 +235,54 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
     step = result["loop"].get("step_p50_us")
     if step:
         result["step_ratio_p50"] = round(step / result["idk_step"]["p50_us"], 3)
+        result["update_ratio_p50"] = round(step / result["update_back_to_back"]["p50_us"], 3)
     return result
+
+
+def update_back_to_back(cfg: Any, n: int = 3000, push: float = 20.0) -> dict[str, float]:
+    """The daemon's whole pure update (what ``step`` times in the loop: the chain, the
+    safety latch, the hold, the enabling switch, the button, the base divider) back to
+    back in this process, armed, a steady ``push`` [N] on the handle, a fresh sample each
+    call: p50 and p99 [us]."""
+    import numpy as np
+
+    from mmctl.control.cycle import CycleChain
+    from mmctl.control.update import BeginEnable, EnableCheck, EnableFinish, Readings, Update
+    from mmctl.types import ArmState, Odometry, Wrench
+
+    update = Update(cfg, CycleChain(cfg))
+    chain = update.chain
+    dt = chain.dt
+    q_a = np.asarray(cfg.robot.q_des, dtype=float)[:6].copy()
+    raw = chain.wrench.gravity_wrench(chain.model.fk_base(np.r_[q_a, np.zeros(3)],
+                                                          "sensor").rotation)
+    held = sum((0 if cfg.enabling.active_low else 1) << i for i in cfg.enabling.inputs)
+    k = [0]
+
+    def readings(extra: float) -> Readings:
+        k[0] += 1
+        t = 100.0 + k[0] * dt
+        f = raw[:3].copy()
+        f[0] += extra
+        return Readings(k[0], t, dt, ArmState(q_a, np.zeros(6), t, 2, 1),
+                        Wrench(f, raw[3:].copy(), t, k[0]),
+                        Odometry(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, t), held)
+
+    s = update.initial_state()
+    for cmd in (BeginEnable(), EnableCheck(), EnableFinish()):
+        s, _, _ = update(s, readings(0.0), [cmd])
+    items = [readings(push) for _ in range(n + 500)]
+    for r in items[:500]:
+        s, _, _ = update(s, r)
+    ns = np.empty(n)
+    clock = time.perf_counter_ns
+    for i, r in enumerate(items[500:]):
+        t0 = clock()
+        s, _, _ = update(s, r)
+        ns[i] = clock() - t0
+    return {"p50_us": round(float(np.percentile(ns, 50)) / 1e3, 2),
+            "p99_us": round(float(np.percentile(ns, 99)) / 1e3, 2),
+            "armed": bool(s.safety.armed)}
 
 
 def _idk_step(cfg: Any, n: int = 5000) -> dict[str, float]:
@@ -420,6 +468,10 @@ def _print_table(r: dict[str, Any]) -> None:
     parts = [f"{name} {r['loop'].get(name + '_p50_us', 0):.0f}/"
              f"{r['loop'].get(name + '_p99_us', 0):.0f}" for name in ("step", *PHASES)]
     print("where the loop's compute goes, p50/p99 [us]: " + ", ".join(parts))
+    b2b = r.get("update_back_to_back")
+    if b2b and r["loop"].get("step_p50_us"):
+        print(f"the update in the loop vs back to back, p50: {r['loop']['step_p50_us']:.0f} vs "
+              f"{b2b['p50_us']:.0f} us (x{r.get('update_ratio_p50', 0):.2f}; target <= 1.5)")
     f2c = r.get("force_to_command")
     if f2c:
         print(f"force to command ({f2c['steps']} push steps of {f2c['force_N']:g} N, from the "

@@ -52,7 +52,6 @@ import math
 import multiprocessing
 import os
 import select
-import signal
 import threading
 import time
 from collections.abc import Sequence
@@ -464,16 +463,10 @@ def _serve(conn: Any, config: ArmConfig, limits: LimitsConfig,
            log_setup: tuple[str, bool | None], state_name: str, command_name: str,
            wake: Wake) -> None:
     """Entry point of the arm's process (see the module docstring)."""
-    try:
-        os.setsid()  # a terminal's Ctrl-C reaches the daemon only
-    except OSError:
-        pass
-    for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT"):  # the daemon ends this process
-        signal.signal(getattr(signal, name), signal.SIG_IGN)
-    from mmctl.runtime.logging import setup_logging
+    from mmctl.transports.child import start_device_child
     from mmctl.transports.ur_rtde_arm import UrRtdeArm
 
-    setup_logging(log_setup[0], json=log_setup[1])
+    start_device_child(log_setup)
     state = Mailbox.attach(state_name, ARM_STATE_LAYOUT)
     command = Mailbox.attach(command_name, ARM_COMMAND_LAYOUT)
     arm = UrRtdeArm(config, limits)

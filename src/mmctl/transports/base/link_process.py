@@ -69,9 +69,7 @@ from __future__ import annotations
 import atexit
 import math
 import multiprocessing
-import os
 import select
-import signal
 import threading
 import time
 from collections.abc import Sequence
@@ -653,18 +651,10 @@ def _serve(conn: Any, events: Any, cfg: BaseConfig, limits: LimitsConfig, port: 
            box_name: str, cmd_name: str, wake: Wake, timing: tuple[int, int],
            realtime: tuple[int, tuple[int, ...]], log_setup: tuple[str, bool | None]) -> None:
     """Entry point of the base's process (see the module doc)."""
-    try:
-        os.setsid()  # a terminal's Ctrl-C reaches the daemon only
-    except OSError:
-        pass
-    for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT"):  # the daemon ends this process
-        signal.signal(getattr(signal, name), signal.SIG_IGN)
-    from mmctl.runtime.logging import setup_logging
-    from mmctl.runtime.loop import apply_realtime
     from mmctl.transports.base import open_base
+    from mmctl.transports.child import start_device_child
 
-    setup_logging(log_setup[0], json=log_setup[1])
-    apply_realtime(*realtime)  # before connect: the transport's threads inherit it
+    start_device_child(log_setup, realtime)
     box = Mailbox.attach(box_name, BASE_ODOMETRY_LAYOUT)
     cmd = Mailbox.attach(cmd_name, BASE_COMMAND_LAYOUT)
     transport = open_base(cfg, limits=limits, port=port)

@@ -45,9 +45,7 @@ from __future__ import annotations
 
 import atexit
 import multiprocessing
-import os
 import select
-import signal
 import threading
 import time
 from collections.abc import Sequence
@@ -502,18 +500,10 @@ def _serve(conn: Any, cfg: SensorConfig, box_name: str, phase: tuple[int | None,
            stream_poll: float, realtime: tuple[int, tuple[int, ...]],
            log_setup: tuple[str, bool | None]) -> None:
     """Entry point of the sensor's process (see the module doc)."""
-    try:
-        os.setsid()  # a terminal's Ctrl-C reaches the daemon only
-    except OSError:
-        pass
-    for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT"):  # the daemon ends this process
-        signal.signal(getattr(signal, name), signal.SIG_IGN)
-    from mmctl.runtime.logging import setup_logging
-    from mmctl.runtime.loop import apply_realtime
+    from mmctl.transports.child import start_device_child
     from mmctl.transports.sensor import open_sensor
 
-    setup_logging(log_setup[0], json=log_setup[1])
-    apply_realtime(*realtime)  # before connect: the transport's threads inherit it
+    start_device_child(log_setup, realtime)
     box = Mailbox.attach(box_name, FORCE_SENSOR_LAYOUT)
     transport = open_sensor(cfg)
     try:
