@@ -8,6 +8,7 @@ ur_rtde, python-can or canopen.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -90,6 +91,19 @@ def sensor_in_process_of_its_own(cfg: Config) -> bool:
     return s.process and not (s.transport == "can" and s.can.interface == "virtual")
 
 
+def link_scheduling(cfg: Config) -> tuple[int, tuple[int, ...]]:
+    """The device links' processes' SCHED_FIFO priority and CPUs: below the loop's
+    priority (10 lower, at least 1; 0 when the loop has none) and off the loop's CPUs
+    when it is pinned and others remain (a link at the loop's priority on the loop's CPU
+    takes turns with it instead of yielding)."""
+    prio = max(cfg.loop.rt_priority - 10, 1) if cfg.loop.rt_priority > 0 else 0
+    cpus: tuple[int, ...] = ()
+    loop_cpus = set(cfg.loop.cpu_affinity)
+    if loop_cpus and hasattr(os, "sched_getaffinity"):
+        cpus = tuple(sorted(os.sched_getaffinity(0) - loop_cpus))
+    return prio, cpus
+
+
 def open_devices(cfg: Config) -> Devices:
     """The real transports for ``cfg`` (not yet connected)."""
     from mmctl.runtime import logging as mmctl_logging
@@ -99,6 +113,7 @@ def open_devices(cfg: Config) -> Devices:
 
     # ur_rtde in a process of its own: its crashes, hangs and GIL-holding calls stay there
     arm = UrRtdeProcessArm(cfg.arm, cfg.limits, mmctl_logging.CURRENT)
+    prio, cpus = link_scheduling(cfg)
     sensor: ForceSensor
     if sensor_in_process_of_its_own(cfg):  # the loop only reads the newest sample
         from mmctl.transports.sensor.link_process import SensorLinkProcess
@@ -106,8 +121,7 @@ def open_devices(cfg: Config) -> Devices:
         period = 1.0 / cfg.loop.rate_hz
         sensor = SensorLinkProcess(cfg.sensor, period=period,
                                    lead=min(cfg.sensor.process_lead, 0.5 * period),
-                                   rt_priority=cfg.loop.rt_priority,
-                                   cpu_affinity=cfg.loop.cpu_affinity,
+                                   rt_priority=prio, cpu_affinity=cpus,
                                    log_setup=mmctl_logging.CURRENT)
     else:
         sensor = open_sensor(cfg.sensor)
@@ -118,8 +132,7 @@ def open_devices(cfg: Config) -> Devices:
 
         # its own process: the loop reads the newest odometry and leaves its commands
         base = BaseLinkProcess(cfg, period=1.0 / cfg.loop.rate_hz,
-                               rt_priority=cfg.loop.rt_priority,
-                               cpu_affinity=cfg.loop.cpu_affinity,
+                               rt_priority=prio, cpu_affinity=cpus,
                                log_setup=mmctl_logging.CURRENT)
     else:
         base = open_base(cfg)
