@@ -70,7 +70,7 @@ def fault_config() -> Config:
                    "wrench": {"stale_timeout": 5.0}},
         "base": {"transport": "canopen",
                  "canopen": {"interface": "virtual", "channel": f"flt-b-{uid}",
-                             "heartbeat_timeout": 5.0, "sdo_timeout": 2.0,
+                             "heartbeat_timeout": 5.0, "sdo_timeout": 5.0,
                              "stop_timeout": 10.0},
                  "command_watchdog": 10.0},
         "loop": {"max_consecutive_misses": 200, "max_total_misses": 1_000_000_000},
@@ -145,12 +145,34 @@ def conditions(w: World) -> set[str]:
     return {c.value for c in w.daemon.last_conditions}
 
 
+#: Refusals a loaded machine causes while the daemon is stepped by hand or starved: the
+#: enable's base SDOs take long enough for the arm's 1 Hz RTDE watchdog to stop its
+#: program, or the in-process drives answer late.  The next enable reconnects the arm.
+_LOAD_REFUSALS = ("arm_not_playing", "arm_timestamp_stale", "the base did not enable")
+
+
+def enable_eventually(w: World, stepping: bool = True, attempts: int = 4) -> None:
+    """``enable``, again after a refusal in :data:`_LOAD_REFUSALS` (any other refusal
+    fails the test)."""
+    for attempt in range(attempts):
+        try:
+            w.daemon.call("enable")
+            return
+        except MmctlError as exc:
+            if not any(r in str(exc) for r in _LOAD_REFUSALS) or attempt == attempts - 1:
+                raise
+        if stepping:
+            step(w, 3)
+        else:
+            time.sleep(0.2)
+
+
 def arm_and_push(w: World, latched: frozenset[str] = frozenset()) -> None:
     """Enable once the conditions are gone (but ``latched`` ones, which the enable
     resets), push, and see speedJ commands with motion reach the fake controller."""
     d = w.daemon
     steps_until(w, lambda: conditions(w) <= latched, "a healthy cycle")
-    d.call("enable")  # any refusal here is a failure
+    enable_eventually(w)
     assert d.safety.armed
     w.sim.set_push(PUSH)
     steps_until(w, lambda: moving(w.arm_log()[-3:])
@@ -284,7 +306,7 @@ def test_loop_overruns_on_the_real_loop(own_world: World) -> None:
     d.start()
     d.sample_hook = lambda *_: time.sleep(0.008) if slow.is_set() else None
     wait_for(lambda: d.cycles > 50, "the loop to run")
-    d.call("enable")
+    enable_eventually(w, stepping=False)
     w.sim.set_push(PUSH)
     wait_for(lambda: moving(w.arm_log()[-3:]), "motion at the fake UR")
     assert d.safety.armed, d.safety.as_dict()
