@@ -8,6 +8,7 @@ import random
 import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -111,6 +112,12 @@ def test_mmctl_fake_ur_serves_the_probe(config: str, capsys: pytest.CaptureFixtu
         if "fake_ur_listening" in listening:
             break
         proc.wait(30)  # address taken by someone else: try another
+    # drain the rest of its output: a full pipe would block the fake's next log line, and
+    # with it its exit on SIGINT (seen in full CI runs under load)
+    out = proc.stdout
+    assert out is not None
+    drain = threading.Thread(target=out.read, daemon=True)
+    drain.start()
     try:
         assert banner.startswith(f"fake UR controller on {host}: dashboard 29999")
         assert main(["probe", "arm", "--host", host, "--config", config, "--json"]) == 0
