@@ -36,6 +36,8 @@ LOAD_PROOF: dict[str, Any] = {
     "base": {"canopen": {"heartbeat_timeout": 5.0, "sdo_timeout": 3.0},
              "command_watchdog": 10.0},
     "loop": {"max_consecutive_misses": 5_000, "max_total_misses": 1_000_000_000},
+    # (an enable that reconnects the arm starts a ur_rtde process: > 5 s when starved)
+    "daemon": {"command_timeout": 30.0},
 }
 
 

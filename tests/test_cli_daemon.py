@@ -90,7 +90,7 @@ def write_config(tmp: Path, host: str) -> Path:
     robot's process and its socketcand traffic for a while): any fault fails them."""
     return write_sim_config(host, tmp, {
         **LOAD_PROOF, "name": "cli-test", "sim": {"human": False, "auto_enable": False},
-        "daemon": {"socket_path": str(tmp / "run" / "mmctl.sock")}})
+        "daemon": {**LOAD_PROOF["daemon"], "socket_path": str(tmp / "run" / "mmctl.sock")}})
 
 
 def spawn(cfg: Path, out: Path, env: dict[str, str], *extra: str) -> subprocess.Popen[bytes]:

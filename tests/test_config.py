@@ -220,6 +220,7 @@ def test_the_tests_generous_settings_are_still_valid(tmp_path: Path) -> None:
     cfg = config_from_dict(sim_config("127.0.0.2", tmp_path, LOAD_PROOF))
     assert cfg.sensor.wrench.stale_timeout == 5.0 and cfg.arm.stale_cycles == 10_000
     assert cfg.base.command_watchdog == 10.0 and cfg.loop.max_total_misses == 10**9
+    assert cfg.daemon.command_timeout == 30.0
     config_from_dict({
         "arm": {"stale_cycles": 10_000, "watchdog_min_frequency": 1.0, "stop_deceleration": 7.5},
         "sensor": {"wrench": {"stale_timeout": 5.0}},

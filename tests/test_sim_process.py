@@ -43,7 +43,8 @@ class Sim:
         # could cause (the enabling switch's fault is its contacts, not a timeout)
         self.config = write_sim_config(host, tmp, {
             **LOAD_PROOF, "name": "sim-test", "sim": {"human": False, "auto_enable": True},
-            "daemon": {"socket_path": str(tmp / "mmctl.sock")}, **(extra or {})})
+            "daemon": {**LOAD_PROOF["daemon"], "socket_path": str(tmp / "mmctl.sock")},
+            **(extra or {})})
         self.socket = tmp / "sim.sock"
         self.out = tmp / "sim.log"
         with self.out.open("ab") as f:

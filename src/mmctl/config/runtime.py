@@ -239,7 +239,8 @@ class SimConfig:
         "+ mmctl-sim.sock")
     ready_timeout: float = param(
         60.0, unit="s", ge=1.0, le=600.0,
-        doc="how long `mmctl run` waits for the `mmctl sim` it started",
+        doc="how long `mmctl run` waits for the `mmctl sim` it started, and then for "
+        "its auto-enable (tare, enable)",
         why="it starts in seconds (a minute on a loaded machine); 10 min is a hang")
     handle_mass: float | None = param(
         None, unit="kg", ge=0.0, le=12.5,

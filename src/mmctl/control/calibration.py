@@ -514,6 +514,7 @@ class ToolCalibration:
         self._still_since: float | None = None
         self._move: Move | None = None
         self._last_seq: int | None = None
+        self._checked_seq: int | None = None  # the last sample the push check saw
         self._phi: Vec | None = None
         self._acc: list[Vec] = []
         self._acc_q: list[Vec] = []
@@ -546,13 +547,20 @@ class ToolCalibration:
                 "error": self.error}
 
     def step(self, q: Vec, qd: Vec, raw: Vec, sequence: int, now: float,
-             hold: bool = False, scaling: float = 1.0) -> Vec:
+             hold: bool = False, scaling: float = 1.0, pose_new: bool = True) -> Vec:
         """One cycle: measured ``q``, ``qd`` (9,) (arm, base), the raw wrench (6,) and
         its ``sequence``, ``now`` [s]; ``hold``: the arm's pose is stale (command zero,
         the motion's clock stands); ``scaling``: the share of a commanded speed the arm
         executes (the UR's speed slider: the motion's clock runs that much slower, so
-        the reference waits for the arm).  Returns the arm's velocity command (6,)
-        [rad/s] (zero once it is no longer :attr:`running`)."""
+        the reference waits for the arm); ``pose_new``: ``q`` is this cycle's sample
+        (False: one repeated from an earlier cycle).  Returns the arm's velocity command
+        (6,) [rad/s] (zero once it is no longer :attr:`running`).
+
+        The push check compares a fresh wrench only with a new pose: a repeated pose
+        lags the turning wrist (1 rad/s for 40 ms of repeats is 0.04 rad, the handle's
+        weight turned by that much: seen as a 5 N "push" on a loaded machine), and
+        the next new pose comes with the next fresh sample (both stream at the loop's
+        rate)."""
         dt = max(now - self._last_now, 0.0)
         self._last_now = now
         if not self.running:
@@ -569,8 +577,10 @@ class ToolCalibration:
         r = self.model.fk_base(q, "sensor").rotation
         fresh = sequence != self._last_seq
         self._last_seq = sequence
-        if fresh and not self._check(raw, r, now):
-            return self._zero
+        if pose_new and sequence != self._checked_seq:  # (else it waits for a new pose)
+            self._checked_seq = sequence
+            if not self._check(raw, r, now):
+                return self._zero
         if hold:
             return self._zero
         q_a = np.asarray(q[:6], dtype=float)

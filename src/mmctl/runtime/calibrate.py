@@ -194,9 +194,10 @@ class CalibrationCommands(_Parts):
         return out
 
     def _calibration_cycle(self, c: ToolCalibration, result: CycleResult | None,
-                           wrench: Wrench | None, fresh_pose: bool) -> CycleResult | None:
+                           wrench: Wrench | None, repeats: int) -> CycleResult | None:
         """Loop thread, after the safety monitor: the routine's command in place of the
-        controller's (arm: its speedJ; base: zero), or its end."""
+        controller's (arm: its speedJ; base: zero), or its end.  ``repeats``: cycles the
+        arm's pose has been repeated (0: this cycle's sample)."""
         now = self.core.clock()
         if not self.safety.armed:  # a fault (the stop went out) or disable
             cause = self.safety.latched.value if self.safety.latched else "disable"
@@ -208,7 +209,8 @@ class CalibrationCommands(_Parts):
         if result is None or wrench is None:
             return result
         cmd = c.step(result.q, result.qd, wrench.as_array(), wrench.sequence, now,
-                     hold=not fresh_pose, scaling=self.speed_scaling)
+                     hold=repeats >= self.cfg.arm.hold_cycles, scaling=self.speed_scaling,
+                     pose_new=repeats == 0)
         if c.phase == "done":
             self._calibration_done(c)
         if c.phase == "aborted":

@@ -386,8 +386,9 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
                  socket=str(self.server.path) if self.server else None)
 
     def _auto_enable(self) -> None:
-        """Simulation only: tare, arm, and let the simulated person start."""
-        deadline = time.monotonic() + self.cfg.daemon.ready_timeout
+        """Simulation only: tare, arm, and let the simulated person start (within
+        sim.ready_timeout: a starved machine's tare takes its 100 samples slowly)."""
+        deadline = time.monotonic() + self.cfg.sim.ready_timeout
         try:
             self.call("tare")
             while self.core.taring and time.monotonic() < deadline and self.loop.running:

@@ -233,8 +233,7 @@ class CycleDriver(_Parts):
 
     def _calibration_commands(self, calib: Any, c: Commands, r: Readings) -> Commands:
         """A tool-load calibration's cycle in place of the controller's motion."""
-        result = self._calibration_cycle(calib, c.result, r.wrench,
-                                         self.ustate.arm_repeats < self.cfg.arm.hold_cycles)
+        result = self._calibration_cycle(calib, c.result, r.wrench, self.ustate.arm_repeats)
         if c.stop or not self.ustate.safety.armed or result is None or c.result is None:
             return c._replace(result=result)
         twist = (0.0, 0.0, 0.0) if self.update._base_due(r.index, (0.0, 0.0, 0.0),

@@ -94,7 +94,7 @@ class DaemonParts:
     def _cmd_calibrate(self, req: Mapping[str, Any]) -> Any: ...
 
     def _calibration_cycle(self, c: ToolCalibration, result: CycleResult | None,
-                           wrench: Wrench | None, fresh_pose: bool) -> CycleResult | None:
+                           wrench: Wrench | None, repeats: int) -> CycleResult | None:
         raise NotImplementedError
 
     def status(self) -> dict[str, Any]:
