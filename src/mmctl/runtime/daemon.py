@@ -46,7 +46,7 @@ from mmctl.config import Config
 from mmctl.control import safety as sm
 from mmctl.control.safety import Safety
 from mmctl.control.update import Readings, Update, UpdateState
-from mmctl.errors import FaultCause, MmctlError
+from mmctl.errors import MmctlError
 from mmctl.runtime.calibrate import CalibrationCommands
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.devices import Devices
@@ -193,7 +193,6 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         self.last: CycleResult | None = None
         #: the cycle that produced :attr:`last`
         self.last_cycle = 0
-        self.last_conditions: dict[FaultCause, dict[str, Any]] = {}
         self._arm_busy = False
         """An arm reconnect runs off the loop thread (set and cleared around it): the
         loop then leaves the arm alone and counts it as disconnected."""

@@ -72,6 +72,11 @@ class RunOnLoop(NamedTuple):
 class CycleDriver(_Parts):
     """The loop thread's cycle (see the module docstring)."""
 
+    @property
+    def last_conditions(self) -> Mapping[FaultCause, Mapping[str, Any]]:
+        """The conditions the newest update saw (a read-only view of its safety state)."""
+        return self.ustate.safety.active
+
     def step_once(self, overrun: bool = False) -> None:
         """Run one cycle on the calling thread (tests and tools that drive the daemon
         without the loop thread); ``overrun`` pretends the miss budget is exhausted."""
@@ -193,15 +198,15 @@ class CycleDriver(_Parts):
             self._phase_sensor = None
         readings = self._read(tick, row)
         t0 = time.perf_counter_ns()
-        state, commands, events = self.update(self.ustate, readings, [c for c, _ in inbox])
+        taken = [c for c, _ in inbox]
+        state, commands, events = self.update(self.ustate, readings, taken)
         self.step_ns[self.cycles % self.step_ns.shape[0]] = time.perf_counter_ns() - t0
         if events:  # logged before the new state is seen: a fault seen has its event
             log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self._limiter)
         self.ustate = self._updated = state
         if self.input_log is not None:
-            self.input_log.append(readings, [c for c, _ in inbox], commands)
+            self.input_log.append(readings, taken, commands)
         self.core.cstate = state.chain
-        self.last_conditions = {c: dict(d) for c, d in state.safety.active.items()}
         result = commands.result
         if result is not None:  # this cycle's numbers (none: a device was not read)
             self.last, self.last_cycle = result, self.cycles

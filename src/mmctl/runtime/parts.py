@@ -18,7 +18,6 @@ from mmctl.config import Config
 from mmctl.control.calibration import ToolCalibration
 from mmctl.control.safety import Safety
 from mmctl.control.update import Readings, Update, UpdateState
-from mmctl.errors import FaultCause
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.daemon import SampleHook
 from mmctl.runtime.devices import Devices
@@ -59,7 +58,6 @@ class DaemonParts:
     sample_hook: SampleHook | None
     last: CycleResult | None
     last_cycle: int
-    last_conditions: dict[FaultCause, dict[str, Any]]
     _t0_ns: int
     _limiter: RateLimiter
     _arm_busy: bool
