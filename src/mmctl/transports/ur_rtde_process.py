@@ -47,12 +47,9 @@ per-cycle traffic goes through two shared-memory mailboxes
 
 from __future__ import annotations
 
-import atexit
 import math
-import multiprocessing
 import os
 import select
-import threading
 import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -65,11 +62,10 @@ from mmctl.config.arm import ArmConfig
 from mmctl.config.control import LimitsConfig
 from mmctl.errors import FaultCause, MmctlError, SafetyFault, TransportError
 from mmctl.runtime.mailbox import Mailbox, MailboxLayout, Sample, Wake, check_clocks, now_ns
+from mmctl.transports.child import Described, LinkProcess
 from mmctl.types import ArmState
 
 if TYPE_CHECKING:
-    from typing_extensions import Self
-
     from mmctl.transports.ur_rtde_arm import UrRtdeArm
 
 log = structlog.get_logger("mmctl.arm")
@@ -128,38 +124,32 @@ _CAUSES = tuple(FaultCause)
 TRANSPORT_CODE = -1
 """The record's ``fault`` of a TransportError (a SafetyFault's is 1 + its cause's index)."""
 
-Described = tuple[str, str | None, dict[str, Any], str]
-"""An exception as plain data for the pipe: (kind, cause, details, message)."""
 
-
-class UrRtdeProcessArm:
+class UrRtdeProcessArm(LinkProcess[SafetyFault]):
     """:class:`~mmctl.transports.arm.Arm` whose ur_rtde client runs in a child process
     (see the module docstring).  config: the ``arm:`` section; limits: ``limits:``;
     log_setup: (level, json) for the child's structlog (the daemon's own).  No I/O
     before :meth:`connect`."""
 
+    _ENDED_EARLY = ""  # "the arm process ended (exit code N)"
+
     def __init__(self, config: ArmConfig, limits: LimitsConfig | None = None,
                  log_setup: tuple[str, bool | None] = ("info", None)):
+        super().__init__(CLOSE_TIMEOUT)
         self.config = config
         self.limits = LimitsConfig() if limits is None else limits
         self.log_setup = log_setup
         self.period_ns = round(1e9 / config.frequency)
         """[ns] the child's polling period (the RTDE rate)."""
-        self._proc: Any = None
-        self._conn: Any = None
         self._state: Mailbox | None = None
         self._command: Mailbox | None = None
         self._wake: Wake | None = None
         self._cmd: memoryview[float] | None = None  # the command staging, as doubles
-        self._lock = threading.Lock()
-        self._poller = select.poll()
         self._sample = Sample(ARM_STATE_LAYOUT)
         self._t = math.nan  # controller time of last_state
         self._missed = 0
         self._faults_seen = 0
         self._missed_fault = False
-        self._details: dict[int, tuple[int, Described]] = {}
-        self._gone: SafetyFault | None = None
         self._seqs = [0, 0, 0]  # speedj, kick, stop posted on this connection
         self._di = 0
         self.last_state: ArmState | None = None
@@ -174,10 +164,6 @@ class UrRtdeProcessArm:
     def connected(self) -> bool:
         return self._conn is not None and self._proc is not None and self._proc.is_alive()
 
-    @property
-    def pid(self) -> int | None:
-        return None if self._proc is None else int(self._proc.pid)
-
     # -- lifecycle -----------------------------------------------------------------------
 
     def connect(self) -> None:
@@ -190,64 +176,23 @@ class UrRtdeProcessArm:
         command = Mailbox.create(ARM_COMMAND_LAYOUT)
         wake = Wake()
 
-        def discard() -> None:
-            state.close()
-            command.close()
-            wake.close()
-
-        ctx = multiprocessing.get_context("spawn")
-        parent, child = ctx.Pipe(duplex=True)
-        proc = ctx.Process(target=_serve, args=(child, self.config, self.limits, self.log_setup,
-                                                state.name, command.name, wake),
-                           name=f"mmctl-arm-{self.host}", daemon=True)
-        try:
-            proc.start()
-        except BaseException:
-            discard()
-            raise
-        child.close()
-        wait = START_TIMEOUT + 3 * self.config.connect_timeout
-        self._details.clear()
-        try:
-            reply: tuple[Any, ...] = ("detail",)
-            while reply[0] == "detail":  # details of a first sample's fault come first
-                if not parent.poll(wait):
-                    raise TransportError(f"{self.host}: the arm process did not report "
-                                         f"within {wait:g} s")
-                reply = parent.recv()
-                self._take(reply)
-        except (EOFError, OSError):
-            reply = ("error", "transport", None,
-                     {}, f"{self.host}: the arm process ended (exit code {proc.exitcode})")
-        except BaseException:
-            _end(proc, parent)
-            discard()
-            raise
-        if reply[0] != "connected":
-            _end(proc, parent)
-            discard()
-            raise _rebuild(reply[1:])
-        poller = select.poll()
-        poller.register(parent.fileno(), select.POLLIN)
-        with self._lock:  # a read on another thread sees all of it or none
+        def install(reply: tuple[Any, ...]) -> None:
             _, self.controller_version, self.serial_number = reply
-            self._proc, self._conn = proc, parent
             self._state, self._command, self._wake = state, command, wake
             self._cmd = command.staging.data.cast("B").cast("d")
-            self._poller = poller
             self._sample = Sample(ARM_STATE_LAYOUT)
             self._t = math.nan
             self._missed = self._faults_seen = 0
             self._missed_fault = False
-            self._gone = None
             self._seqs = [0, 0, 0]
             self._di = 0
             self.last_state = None
-        # before multiprocessing's own exit handler, which joins daemonic children
-        # without a timeout (this one ignores SIGTERM): a process that never closed the
-        # arm still exits, and its segments go
-        atexit.register(self.close)
-        log.info("arm_process_started", host=self.host, pid=proc.pid, mailbox=state.name)
+
+        self._start(_serve, (self.config, self.limits, self.log_setup, state.name,
+                             command.name, wake),
+                    f"mmctl-arm-{self.host}", (state, command, wake),
+                    START_TIMEOUT + 3 * self.config.connect_timeout, install)
+        log.info("arm_process_started", host=self.host, pid=self.pid, mailbox=state.name)
 
     def reconnect(self) -> None:
         """End the child, start a new one."""
@@ -257,32 +202,9 @@ class UrRtdeProcessArm:
     def close(self) -> None:
         """speedStop + stopScript in the child (healthy link), then it ends; the mailboxes
         are unlinked (idempotent)."""
-        with self._lock:  # never under a read on another thread
-            proc, conn, wake = self._proc, self._conn, self._wake
-            for box in (self._state, self._command):
-                if box is not None:
-                    box.close()
-            self._proc = self._conn = self._state = self._command = self._wake = None
-            self._cmd = None
-        if proc is None:
-            return
-        atexit.unregister(self.close)
-        try:
-            conn.send(("close",))
-            conn.poll(CLOSE_TIMEOUT)  # its "closed", or the pipe closing, or nothing
-        except (EOFError, OSError):
-            pass
-        _end(proc, conn)
-        if wake is not None:
-            wake.close()
-        log.info("arm_closed", host=self.host, exit_code=proc.exitcode)
-
-    def __enter__(self) -> Self:
-        self.connect()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        proc = self._close_child(answer=CLOSE_TIMEOUT)  # speedStop + stopScript first
+        if proc is not None:
+            log.info("arm_closed", host=self.host, exit_code=proc.exitcode)
 
     # -- per cycle -----------------------------------------------------------------------
 
@@ -388,27 +310,19 @@ class UrRtdeProcessArm:
         self._command.publish(now_ns())
         self._wake.notify()
 
-    def _check_child(self) -> None:
-        """Take the pipe's messages; a closed pipe is a child that ended."""
-        if self._gone is not None or self._conn is None:
-            return
-        try:
-            while self._poller.poll(0):  # (Connection.poll builds a selector per call)
-                self._take(self._conn.recv())
-        except (EOFError, OSError):
-            proc = self._proc
-            if proc is not None:
-                proc.join(0)  # reap it if it has ended (never waits), for its exit code
-            code = None if proc is None else proc.exitcode
-            self._gone = SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.host,
-                                     why=f"the arm process ended (exit code {code})")
+    def _who(self) -> str:
+        return f"{self.host}: the arm process"
 
-    def _take(self, msg: tuple[Any, ...]) -> None:
-        if msg[0] == "detail":
-            _, ident, code, data = msg
-            self._details[ident] = (code, data)
-            for old in [k for k in self._details if k < ident - 8]:
-                del self._details[old]
+    def _refused(self, reply: tuple[Any, ...]) -> MmctlError:
+        return _rebuild(reply[1:])
+
+    def _child_ended(self, exit_code: int | None) -> SafetyFault:
+        return SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.host,
+                           why=f"the arm process ended (exit code {exit_code})")
+
+    def _detach(self) -> None:
+        self._state = self._command = self._wake = None
+        self._cmd = None
 
     def _fault(self) -> MmctlError:
         """The exception of the newest record's fault (of the newest fault a good record
@@ -426,14 +340,6 @@ class UrRtdeProcessArm:
             return TransportError(f"{self.host}: the arm process lost the link ({why})")
         cause = _CAUSES[code - 1] if 1 <= code <= len(_CAUSES) else FaultCause.INTERNAL
         return SafetyFault(cause, host=self.host, why=why)
-
-
-def _end(proc: Any, conn: Any) -> None:
-    proc.join(CLOSE_TIMEOUT)
-    if proc.is_alive():
-        proc.kill()
-        proc.join(CLOSE_TIMEOUT)
-    conn.close()
 
 
 def _describe(exc: MmctlError) -> Described:

@@ -66,15 +66,13 @@ parent owns the segments and unlinks them at ``close()``, also after the child d
 
 from __future__ import annotations
 
-import atexit
 import math
-import multiprocessing
 import select
 import threading
 import time
 from collections.abc import Sequence
 from enum import IntEnum
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import structlog
 
@@ -85,12 +83,8 @@ from mmctl.control.mecanum import wheel_matrix
 from mmctl.errors import FaultCause, LinkLost, MmctlError, SafetyFault, TransportError
 from mmctl.runtime.mailbox import Mailbox, MailboxLayout, Sample, Wake, check_clocks, now_ns
 from mmctl.transports.base.protocol import Base, DriveStatus
+from mmctl.transports.child import Described, LinkProcess
 from mmctl.types import Odometry, Twist
-
-if TYPE_CHECKING:
-    from types import TracebackType
-
-    from typing_extensions import Self
 
 log = structlog.get_logger("mmctl.base.process")
 
@@ -149,10 +143,6 @@ class LinkError(IntEnum):
     INTERNAL = 4  # any other exception: a bug
 
 
-Described = tuple[str, str | None, dict[str, Any], str]
-"""An exception as plain data for the side pipe: (kind, cause, details, message)."""
-
-
 def describe(exc: BaseException, link: str) -> tuple[LinkError, Described]:
     """An exception of the child's transport as (code, :data:`Described`); ``link`` names
     the link for an error the client library raised bare (OSError, CanError)."""
@@ -192,7 +182,7 @@ def rebuild(data: Described) -> MmctlError:
     return TransportError(message)
 
 
-class BaseLinkProcess:
+class BaseLinkProcess(LinkProcess[LinkLost]):
     """:class:`~mmctl.transports.base.protocol.Base` whose transport runs in a child
     process (see the module doc).  No I/O before :meth:`connect`.
 
@@ -233,6 +223,7 @@ class BaseLinkProcess:
         stale = silence if stale_timeout is None else stale_timeout
         if not stale > 0.0:
             raise ValueError(f"stale_timeout {stale} s must be > 0")
+        super().__init__(CLOSE_TIMEOUT)
         self.cfg = cfg
         self.limits = limits or LimitsConfig()
         self.port = port
@@ -255,10 +246,8 @@ class BaseLinkProcess:
         self._rows = tuple(tuple(float(x) for x in row) for row in wheel_matrix(cfg.mecanum))
         self._wheel_limit = float(self.limits.wheel_velocity)
         self._link: str | None = None
-        self._proc: Any = None
-        self._conn: Any = None  # requests and replies
-        self._events: Any = None  # the child's details messages; EOF: the child ended
-        self._poller = select.poll()
+        # _conn: requests and replies; _events: the child's details messages (EOF: the
+        # child ended)
         self._box: Mailbox | None = None
         self._cmd: Mailbox | None = None
         self._cmd_f: Any = None  # the staging record as a memoryview of doubles
@@ -267,11 +256,9 @@ class BaseLinkProcess:
         self._index = 0
         self._errors_seen = 0
         self._missed_error = False
-        self._details: dict[int, tuple[int, Described]] = {}
-        self._gone: LinkLost | None = None
         self._lost: LinkLost | None = None  # the newest record's LinkLost, for stop()
         self._enabled = False
-        self._lock = threading.Lock()  # the mailboxes: held for a copy or a swap only
+        # _lock: the mailboxes, held for a copy or a swap only
         self._req_lock = threading.Lock()  # one request at a time on the pipe
         self._req_id = 0
         self.requests = 0
@@ -283,11 +270,6 @@ class BaseLinkProcess:
         if self._link is None:
             self._link = link_name(self.cfg, self.port)
         return self._link
-
-    @property
-    def pid(self) -> int | None:
-        """The child's process id (None before connect)."""
-        return None if self._proc is None else int(self._proc.pid)
 
     @property
     def connected(self) -> bool:
@@ -304,65 +286,24 @@ class BaseLinkProcess:
         box = Mailbox.create(BASE_ODOMETRY_LAYOUT)
         cmd = Mailbox.create(BASE_COMMAND_LAYOUT)
         wake = Wake()
-        ctx = multiprocessing.get_context("spawn")
-        parent, child = ctx.Pipe(duplex=True)
-        events, events_w = ctx.Pipe(duplex=False)
-        proc = ctx.Process(target=_serve, args=(
-            child, events_w, self.cfg, self.limits, self.port, box.name, cmd.name, wake,
-            (self.period_ns, self.batch_delay_ns), self.realtime, self.log_setup),
-            name="mmctl-base", daemon=True)
 
-        def release() -> None:
-            box.close()
-            cmd.close()
-            wake.close()
-
-        try:
-            proc.start()
-        except BaseException:
-            release()
-            raise
-        child.close()
-        events_w.close()
-        self._details.clear()
-        try:
-            if not parent.poll(self._connect_wait):
-                raise TransportError(f"base {self.link}: the link process did not report "
-                                     f"within {self._connect_wait:g} s")
-            reply = parent.recv()
-        except (EOFError, OSError):
-            ended = (f"base {self.link}: the link process ended (exit code "
-                     f"{proc.exitcode}) before it connected")
-            reply = ("error", ("transport", None, {}, ended))
-        except BaseException:
-            _end(proc, parent, CLOSE_TIMEOUT)
-            events.close()
-            release()
-            raise
-        if reply[0] != "connected":
-            _end(proc, parent, CLOSE_TIMEOUT)
-            events.close()
-            release()
-            raise rebuild(reply[1])
-        self._link = reply[1]
-        poller = select.poll()
-        poller.register(events.fileno(), select.POLLIN)
-        with self._lock:  # a read on another thread sees all of it or none
-            self._proc, self._conn, self._events = proc, parent, events
+        def install(reply: tuple[Any, ...]) -> None:
+            self._link = reply[1]
             self._box, self._cmd, self._wake = box, cmd, wake
             self._cmd_f = memoryview(cmd.staging.data)
-            self._poller = poller
             self._sample = Sample(BASE_ODOMETRY_LAYOUT)
             self._index = 0
             self._errors_seen = reply[2]
             self._missed_error = False
-            self._gone = self._lost = None
+            self._lost = None
             self._enabled = False
             box.read_into(self._sample)
-        # before multiprocessing's own exit handler, which joins daemonic children
-        # without a timeout (this one ignores SIGTERM)
-        atexit.register(self.close)
-        log.info("base_process_started", link=self._link, pid=proc.pid, mailbox=box.name)
+
+        self._start(_serve, (self.cfg, self.limits, self.port, box.name, cmd.name, wake,
+                             (self.period_ns, self.batch_delay_ns), self.realtime,
+                             self.log_setup),
+                    "mmctl-base", (box, cmd, wake), self._connect_wait, install, side_pipe=True)
+        log.info("base_process_started", link=self._link, pid=self.pid, mailbox=box.name)
 
     def reconnect(self) -> None:
         """After a lost link: a child that ended is replaced by a new one (its transport
@@ -377,15 +318,8 @@ class BaseLinkProcess:
                     self._enabled = False  # the transport's reconnect leaves it disabled
                 self._request("reconnect")
                 return
-        self.close()
-        try:
-            self.connect()
-            self.disable()  # as the transport's reconnect: a drive still on ramps to rest
-        except LinkLost:
-            raise
-        except TransportError as exc:
-            raise LinkLost.wrap(self.link, FaultCause.BASE_LINK, "reconnect failed",
-                                exc) from exc
+        # as the transport's reconnect: a drive still on ramps to rest
+        self._restart(self.link, FaultCause.BASE_LINK, then=self.disable)
         log.info("base_reconnected", transport="process", link=self.link)
 
     def enable(self) -> None:
@@ -422,35 +356,9 @@ class BaseLinkProcess:
         """Ask the child to close its transport (stop, disable) and end; kill it if it
         does not in time; unlink the mailboxes.  Safe to call twice."""
         with self._req_lock:
-            with self._lock:  # not under a read on another thread
-                proc, conn, events = self._proc, self._conn, self._events
-                box, cmd, wake = self._box, self._cmd, self._wake
-                self._proc = self._conn = self._events = None
-                self._box = self._cmd = None
-                self._cmd_f = None
-                self._wake = None
-                self._enabled = False
-            if proc is None:
-                return
-            atexit.unregister(self.close)
-            try:
-                conn.send(("close",))
-            except OSError:
-                pass
-            _end(proc, conn, self._close_wait)
-            events.close()
-            for part in (box, cmd, wake):
-                if part is not None:
-                    part.close()
-        log.info("base_process_closed", link=self._link, exit_code=proc.exitcode)
-
-    def __enter__(self) -> Self:
-        self.connect()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
+            proc = self._close_child(self._close_wait)
+        if proc is not None:
+            log.info("base_process_closed", link=self._link, exit_code=proc.exitcode)
 
     # -- per cycle ---------------------------------------------------------------------
 
@@ -589,28 +497,25 @@ class BaseLinkProcess:
                               f"the link process was ended: {why}")
         log.error("base_process_killed", link=self._link, why=why)
 
-    def _check_child(self) -> None:
-        """Take the side pipe's messages; a closed pipe is a child that ended.  Under
-        ``_lock`` (one reader of the side pipe)."""
-        if self._gone is not None or self._events is None:
-            return
-        try:
-            while self._poller.poll(0):
-                self._take(self._events.recv())
-        except (EOFError, OSError):
-            proc = self._proc
-            if proc is not None:
-                proc.join(0)  # reap it if it has ended (never waits), for its exit code
-            code = None if proc is None else proc.exitcode
-            self._gone = LinkLost(self.link, FaultCause.BASE_LINK,
-                                  f"the link process ended (exit code {code})")
-            log.error("base_process_lost", link=self._link, exit_code=code)
+    # _check_child (the side pipe's messages; a closed pipe is a child that ended): under
+    # ``_lock`` (one reader of the side pipe)
 
-    def _take(self, msg: tuple[Any, ...]) -> None:
-        _, ident, code, data = msg
-        self._details[ident] = (code, data)
-        for old in [k for k in self._details if k < ident - 8]:
-            del self._details[old]
+    def _who(self) -> str:
+        return f"base {self.link}: the link process"
+
+    def _refused(self, reply: tuple[Any, ...]) -> MmctlError:
+        return rebuild(reply[1])
+
+    def _child_ended(self, exit_code: int | None) -> LinkLost:
+        log.error("base_process_lost", link=self._link, exit_code=exit_code)
+        return LinkLost(self.link, FaultCause.BASE_LINK,
+                        f"the link process ended (exit code {exit_code})")
+
+    def _detach(self) -> None:
+        self._box = self._cmd = None
+        self._cmd_f = None
+        self._wake = None
+        self._enabled = False
 
     def _error(self) -> MmctlError:
         """The exception of the newest record's error (of the newest error overwritten
@@ -635,14 +540,6 @@ class BaseLinkProcess:
         if isinstance(exc, LinkLost) and int(f[_ERROR]) == LinkError.LINK_LOST:
             self._lost = exc
         return exc
-
-
-def _end(proc: Any, conn: Any, timeout: float) -> None:
-    proc.join(timeout)
-    if proc.is_alive():
-        proc.kill()
-        proc.join(CLOSE_TIMEOUT)
-    conn.close()
 
 
 # -- the child ---------------------------------------------------------------------------

@@ -43,14 +43,11 @@ unlinks it at ``close()``, also after the child died.
 
 from __future__ import annotations
 
-import atexit
-import multiprocessing
 import select
-import threading
 import time
 from collections.abc import Sequence
 from enum import IntEnum
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import structlog
@@ -65,12 +62,9 @@ from mmctl.errors import (
     TransportError,
 )
 from mmctl.runtime.mailbox import Mailbox, MailboxLayout, Sample, check_clocks, now_ns
+from mmctl.transports.child import Described, LinkProcess
 from mmctl.transports.sensor.protocol import ForceSensor, SensorStats
 from mmctl.types import Wrench
-
-if TYPE_CHECKING:
-    from types import TracebackType
-    from typing import Self
 
 log = structlog.get_logger("mmctl.sensor.process")
 
@@ -135,10 +129,6 @@ _CAUSE_CODES = {FaultCause.SENSOR_STALE: LinkError.STALE,
                 FaultCause.SENSOR_SATURATION: LinkError.SATURATION}
 
 
-Described = tuple[str, str | None, dict[str, Any], str]
-"""An exception as plain data for the side pipe: (kind, cause, details, message)."""
-
-
 def describe(exc: BaseException, link: str) -> tuple[LinkError, Described]:
     """An exception of the child's transport as (code, :data:`Described`); ``link`` names
     the link for a lost one that the client library raised bare (OSError, CanError)."""
@@ -173,7 +163,7 @@ def rebuild(data: Described) -> MmctlError:
     return TransportError(message)
 
 
-class SensorLinkProcess:
+class SensorLinkProcess(LinkProcess[LinkLost]):
     """:class:`~mmctl.transports.sensor.protocol.ForceSensor` whose transport runs in a
     child process (see the module doc).  No I/O before :meth:`connect`.
 
@@ -210,6 +200,7 @@ class SensorLinkProcess:
         stale = cfg.wrench.stale_timeout if stale_timeout is None else stale_timeout
         if not stale > 0.0:
             raise ValueError(f"stale_timeout {stale} s must be > 0")
+        super().__init__(CLOSE_TIMEOUT)
         self.cfg = cfg
         self.period_ns = round(period * 1e9)
         self.origin_ns = origin_ns
@@ -219,18 +210,12 @@ class SensorLinkProcess:
         self.realtime = (int(rt_priority), tuple(cpu_affinity))
         self.log_setup = log_setup
         self._link: str | None = None
-        self._proc: Any = None
-        self._conn: Any = None
-        self._poller = select.poll()
         self._box: Mailbox | None = None
         self._sample = Sample(FORCE_SENSOR_LAYOUT)
         self._wrench: Wrench | None = None
         self._wrench_t_ns = 0
         self._errors_seen = 0
         self._missed_error = False
-        self._details: dict[int, tuple[int, Described]] = {}
-        self._gone: LinkLost | None = None
-        self._lock = threading.Lock()
 
     @property
     def link(self) -> str:
@@ -240,11 +225,6 @@ class SensorLinkProcess:
 
             self._link = open_sensor(self.cfg).link  # builds it, no I/O
         return self._link
-
-    @property
-    def pid(self) -> int | None:
-        """The child's process id (None before connect)."""
-        return None if self._proc is None else int(self._proc.pid)
 
     @property
     def connected(self) -> bool:
@@ -259,58 +239,21 @@ class SensorLinkProcess:
             return
         check_clocks()
         box = Mailbox.create(FORCE_SENSOR_LAYOUT)
-        ctx = multiprocessing.get_context("spawn")
-        parent, child = ctx.Pipe(duplex=True)
-        phase = (self.origin_ns, self.period_ns, self.lead_ns)
-        proc = ctx.Process(target=_serve, args=(child, self.cfg, box.name, phase,
-                                                self.stream_poll, self.realtime,
-                                                self.log_setup),
-                           name="mmctl-sensor", daemon=True)
-        try:
-            proc.start()
-        except BaseException:
-            box.close()
-            raise
-        child.close()
-        wait = START_TIMEOUT + 2 * max(self.cfg.can.connect_timeout, self.cfg.rdt.connect_timeout)
-        self._details.clear()
-        try:
-            reply: tuple[Any, ...] = ("detail",)
-            while reply[0] == "detail":  # details of a first read's error come first
-                if not parent.poll(wait):
-                    raise TransportError(f"F/T sensor {self.link}: the link process did not "
-                                         f"report within {wait:g} s")
-                reply = parent.recv()
-                self._take(reply)
-        except (EOFError, OSError):
-            ended = (f"F/T sensor {self.link}: the link process ended "
-                     f"(exit code {proc.exitcode}) before it connected")
-            reply = ("error", ("transport", None, {}, ended))  # as nothing answering
-        except BaseException:
-            _end(proc, parent)
-            box.close()
-            raise
-        if reply[0] != "connected":
-            _end(proc, parent)
-            box.close()
-            raise rebuild(reply[1])
-        self._link = reply[1]
-        poller = select.poll()
-        poller.register(parent.fileno(), select.POLLIN)
-        with self._lock:  # a read() on another thread sees all of it or none
-            self._proc, self._conn, self._box = proc, parent, box
-            self._poller = poller
+
+        def install(reply: tuple[Any, ...]) -> None:
+            self._link = reply[1]
+            self._box = box
             self._sample = Sample(FORCE_SENSOR_LAYOUT)
             self._wrench = None
             self._wrench_t_ns = 0
             self._errors_seen = 0
             self._missed_error = False
-            self._gone = None
-        # before multiprocessing's own exit handler, which joins daemonic children
-        # without a timeout (this one ignores SIGTERM): a daemon that never closed us
-        # must still exit
-        atexit.register(self.close)
-        log.info("sensor_process_started", link=self._link, pid=proc.pid, mailbox=box.name)
+
+        phase = (self.origin_ns, self.period_ns, self.lead_ns)
+        wait = START_TIMEOUT + 2 * max(self.cfg.can.connect_timeout, self.cfg.rdt.connect_timeout)
+        self._start(_serve, (self.cfg, box.name, phase, self.stream_poll, self.realtime,
+                             self.log_setup), "mmctl-sensor", (box,), wait, install)
+        log.info("sensor_process_started", link=self._link, pid=self.pid, mailbox=box.name)
 
     def reconnect(self) -> None:
         """After a lost link (the child ended, or its transport lost the link and
@@ -320,14 +263,7 @@ class SensorLinkProcess:
         the loop thread."""
         if self._box is not None and not self._lost():
             return
-        self.close()
-        try:
-            self.connect()
-        except LinkLost:
-            raise
-        except TransportError as exc:
-            raise LinkLost(self.link, FaultCause.SENSOR_LINK,
-                           f"reconnect failed: {exc}") from exc
+        self._restart(self.link, FaultCause.SENSOR_LINK)
         log.info("sensor_reconnected", transport="process", link=self.link)
 
     def set_phase(self, origin_ns: int, period: float | None = None) -> None:
@@ -348,28 +284,9 @@ class SensorLinkProcess:
     def close(self) -> None:
         """Ask the child to close its transport and end; kill it if it does not within
         CLOSE_TIMEOUT; unlink the mailbox.  Safe to call twice."""
-        with self._lock:  # not under a read() on another thread
-            proc, conn, box = self._proc, self._conn, self._box
-            self._proc = self._conn = self._box = None
-            if box is not None:
-                box.close()
-        if proc is None:
-            return
-        atexit.unregister(self.close)
-        try:
-            conn.send(("close",))
-        except OSError:
-            pass
-        _end(proc, conn)
-        log.info("sensor_process_closed", link=self._link, exit_code=proc.exitcode)
-
-    def __enter__(self) -> Self:
-        self.connect()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
+        proc = self._close_child()
+        if proc is not None:
+            log.info("sensor_process_closed", link=self._link, exit_code=proc.exitcode)
 
     # -- per cycle ---------------------------------------------------------------------
 
@@ -427,29 +344,19 @@ class SensorLinkProcess:
         code = int(self._sample.values[_ERROR])
         return self._gone is not None or code in (LinkError.LINK_LOST, LinkError.INTERNAL)
 
-    def _check_child(self) -> None:
-        """Take the side pipe's messages; a closed pipe is a child that ended."""
-        if self._gone is not None:
-            return
-        conn = self._conn
-        try:
-            while self._poller.poll(0):
-                self._take(conn.recv())
-        except (EOFError, OSError):
-            proc = self._proc
-            if proc is not None:
-                proc.join(0)  # reap it if it has ended (never waits), for its exit code
-            code = None if proc is None else proc.exitcode
-            self._gone = LinkLost(self.link, FaultCause.SENSOR_LINK,
-                                  f"the link process ended (exit code {code})")
-            log.error("sensor_process_lost", link=self._link, exit_code=code)
+    def _who(self) -> str:
+        return f"F/T sensor {self.link}: the link process"
 
-    def _take(self, msg: tuple[Any, ...]) -> None:
-        if msg[0] == "detail":
-            _, ident, code, data = msg
-            self._details[ident] = (code, data)
-            for old in [k for k in self._details if k < ident - 8]:
-                del self._details[old]
+    def _refused(self, reply: tuple[Any, ...]) -> MmctlError:
+        return rebuild(reply[1])
+
+    def _child_ended(self, exit_code: int | None) -> LinkLost:
+        log.error("sensor_process_lost", link=self._link, exit_code=exit_code)
+        return LinkLost(self.link, FaultCause.SENSOR_LINK,
+                        f"the link process ended (exit code {exit_code})")
+
+    def _detach(self) -> None:
+        self._box = None
 
     def _error(self) -> MmctlError:
         """The exception of the newest record's error (of the newest error overwritten
@@ -477,14 +384,6 @@ class SensorLinkProcess:
         if code == LinkError.PROTOCOL:
             return ProtocolError(f"F/T sensor {link}: malformed reply ({why})")
         return LinkLost(link, FaultCause.SENSOR_LINK, f"error {code} ({why})")
-
-
-def _end(proc: Any, conn: Any) -> None:
-    proc.join(CLOSE_TIMEOUT)
-    if proc.is_alive():
-        proc.kill()
-        proc.join(CLOSE_TIMEOUT)
-    conn.close()
 
 
 def next_deadline(now_ns: int, origin_ns: int, period_ns: int, lead_ns: int) -> int:
