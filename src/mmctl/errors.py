@@ -3,6 +3,19 @@
 from __future__ import annotations
 
 from enum import Enum
+from typing import TypeVar
+
+_E = TypeVar("_E", bound=BaseException)
+
+
+def again(exc: _E) -> _E:
+    """A stored exception, ready to be raised once more: ``raise again(self._gone)``.
+
+    Raising one instance again and again appends each raise's frames to its
+    ``__traceback__`` and keeps them alive: a daemon whose arm link was lost re-raised
+    that fault every cycle and grew by 1.4 MB/s (7.5 GB resident after 86 min).  The
+    traceback is cleared first, so it holds the last raise's frames only."""
+    return exc.with_traceback(None)
 
 
 class MmctlError(Exception):

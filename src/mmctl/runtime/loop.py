@@ -29,6 +29,7 @@ from typing import NamedTuple, Protocol
 
 import structlog
 
+from mmctl.errors import again
 from mmctl.runtime.timing import TimingRing
 
 log = structlog.get_logger("mmctl.loop")
@@ -274,7 +275,7 @@ class CycleLoop:
         if self._thread is not None:
             self._thread.join(timeout)
         if self.error is not None:
-            raise self.error
+            raise again(self.error)
 
     def reset_misses(self) -> None:
         """Zero the miss counters at the start of the next cycle (e.g. on enable)."""

@@ -66,6 +66,7 @@ from mmctl.config import Config
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig
 from mmctl.config.runtime import SimConfig
+from mmctl.errors import again
 from mmctl.sim.wheels import SUBSTEP, BaseDynamics, WheelPlant
 from mmctl.transports.base import cia402 as ds
 from mmctl.transports.base.protocol import WHEEL_NAMES, DriveStatus
@@ -232,7 +233,7 @@ class FakeDrives:
     def check(self) -> None:
         """Re-raise the first exception a CAN handler of the fakes raised, if any."""
         if self._error is not None:
-            raise self._error
+            raise again(self._error)
 
     def __enter__(self) -> Self:
         self.start()

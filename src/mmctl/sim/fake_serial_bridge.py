@@ -36,6 +36,7 @@ from mmctl.config import Config
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig
 from mmctl.config.runtime import SimConfig
+from mmctl.errors import again
 from mmctl.sim.wheels import BaseDynamics, WheelPlant
 from mmctl.transports.base import serial_protocol as sp
 
@@ -122,7 +123,7 @@ class FakeSerialBridge:
     def check(self) -> None:
         """Re-raise the exception that ended the bridge thread, if any."""
         if self._error is not None:
-            raise self._error
+            raise again(self._error)
 
     def __enter__(self) -> Self:
         self.start()

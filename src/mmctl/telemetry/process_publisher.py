@@ -33,6 +33,7 @@ import structlog
 
 from mmctl.config.base import MecanumConfig
 from mmctl.config.robot import RobotConfig
+from mmctl.errors import again
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.publisher import EVENT_QUEUE_SIZE
 from mmctl.telemetry.queue import DropQueue
@@ -180,7 +181,7 @@ class ProcessPublisher:
         if error is not None and self.error is None:
             self.error = TelemetryError(f"telemetry process: {error}")
         if self.error is not None:
-            raise self.error
+            raise again(self.error)
 
     def _kill(self) -> None:
         proc, self._proc = self._proc, None

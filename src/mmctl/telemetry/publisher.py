@@ -30,6 +30,7 @@ import structlog
 
 from mmctl.config.base import MecanumConfig
 from mmctl.control.mecanum import wheel_matrix
+from mmctl.errors import again
 from mmctl.telemetry import layout
 from mmctl.telemetry import ring as tr
 from mmctl.telemetry.batch import Columns, full_rate, loop_timing, plot_rate, plot_stride
@@ -136,7 +137,7 @@ class Publisher:
             self.sink.close()
         finally:
             if self.error is not None:
-                raise self.error
+                raise again(self.error)
 
     def __enter__(self) -> Publisher:  # noqa: PYI034
         self.start()

@@ -60,7 +60,7 @@ from numpy.typing import NDArray
 
 from mmctl.config.arm import ArmConfig
 from mmctl.config.control import LimitsConfig
-from mmctl.errors import FaultCause, MmctlError, SafetyFault, TransportError
+from mmctl.errors import FaultCause, MmctlError, SafetyFault, TransportError, again
 from mmctl.runtime.mailbox import Mailbox, MailboxLayout, Sample, Wake, check_clocks, now_ns
 from mmctl.transports.child import Described, LinkProcess
 from mmctl.types import ArmState
@@ -238,7 +238,7 @@ class UrRtdeProcessArm(LinkProcess[SafetyFault]):
             if now_ns() - f[_PUBLISHED] > self.period_ns:
                 self._check_child()  # quiet for a period: still there? (a syscall)
             if self._gone is not None:
-                raise self._gone
+                raise again(self._gone)
             if f[_FAULT] or self._missed_fault:
                 self._missed_fault = False
                 raise self._fault()
@@ -298,7 +298,7 @@ class UrRtdeProcessArm(LinkProcess[SafetyFault]):
         if cmd is None:
             raise SafetyFault(FaultCause.ARM_DISCONNECTED, host=self.host, why="not connected")
         if self._gone is not None:
-            raise self._gone
+            raise again(self._gone)
         return cmd
 
     def _post(self, cmd: memoryview[float], kind: int, field: int) -> None:

@@ -80,7 +80,7 @@ from mmctl.config import Config
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig
 from mmctl.control.mecanum import wheel_matrix
-from mmctl.errors import FaultCause, LinkLost, MmctlError, SafetyFault, TransportError
+from mmctl.errors import FaultCause, LinkLost, MmctlError, SafetyFault, TransportError, again
 from mmctl.runtime.mailbox import Mailbox, MailboxLayout, Sample, Wake, check_clocks, now_ns
 from mmctl.transports.base.protocol import Base, DriveStatus
 from mmctl.transports.child import Described, LinkProcess
@@ -384,7 +384,7 @@ class BaseLinkProcess(LinkProcess[LinkLost]):
         s = 1.0 if peak <= self._wheel_limit else self._wheel_limit / peak
         with self._lock:
             if self._gone is not None:
-                raise self._gone
+                raise again(self._gone)
             if self._sample.fields[_ERROR]:
                 self._post_locked(_STOP_AT)
                 raise self._error()
@@ -414,7 +414,7 @@ class BaseLinkProcess(LinkProcess[LinkLost]):
         elif now - s.t_ns > 2 * self.period_ns:
             self._check_child()  # quiet for two periods: is the child there? (a syscall)
         if self._gone is not None:
-            raise self._gone
+            raise again(self._gone)
         if f[_ERROR] or self._missed_error:
             self._missed_error = False
             raise self._error()
@@ -422,7 +422,7 @@ class BaseLinkProcess(LinkProcess[LinkLost]):
         if age > self.stale_ns:
             self._check_child()
             if self._gone is not None:
-                raise self._gone
+                raise again(self._gone)
             raise SafetyFault(self._silent_cause, link=self.link,
                               silent_for=round(age * 1e-9, 4), source="link_process")
         return Odometry(f[0], f[1], f[2], f[3], f[4], f[5], f[_ODO_T])
@@ -432,7 +432,7 @@ class BaseLinkProcess(LinkProcess[LinkLost]):
             if self._cmd is None:
                 return  # not connected: nothing to stop (as the transports)
             if self._gone is not None:
-                raise self._gone
+                raise again(self._gone)
             if self._lost is not None and at != _TWIST_AT:
                 raise self._lost  # as the transport's stop on a lost link: at once
             self._post_locked(at, vx, vy, wz)
@@ -458,7 +458,7 @@ class BaseLinkProcess(LinkProcess[LinkLost]):
             with self._lock:
                 self._check_child()
             if self._gone is not None:
-                raise self._gone
+                raise again(self._gone)
             self._req_id += 1
             ident = self._req_id
             self.requests += 1
@@ -468,7 +468,7 @@ class BaseLinkProcess(LinkProcess[LinkLost]):
                     if not conn.poll(self._request_wait):
                         self._kill(f"{name}() not answered within {self._request_wait:g} s")
                         assert self._gone is not None
-                        raise self._gone
+                        raise again(self._gone)
                     reply = conn.recv()
                     if reply[1] == ident:
                         break

@@ -27,7 +27,7 @@ import structlog
 
 from mmctl.config.base import BaseConfig
 from mmctl.config.control import LimitsConfig
-from mmctl.errors import FaultCause, LinkLost, MmctlError, SafetyFault, TransportError
+from mmctl.errors import FaultCause, LinkLost, MmctlError, SafetyFault, TransportError, again
 from mmctl.transports.base import serial_protocol as sp
 from mmctl.transports.base.kinematics import OdometryIntegrator, WheelCommand, wrap_delta
 from mmctl.transports.base.protocol import WHEEL_NAMES, DriveStatus
@@ -136,7 +136,7 @@ class SerialBase:
             if s is not None and s.status & sp.Status.FAULT:
                 self._fault = SafetyFault(FaultCause.DRIVE_FAULT, port=self.port,
                                           fault_code=f"0x{s.fault_code:04X}")
-                raise self._fault
+                raise again(self._fault)
             raise TransportError(f"bridge on {self.port!r} did not confirm ENABLE")
         self._enabled = True
         log.info("base_enabled", transport="serial", port=self.port)

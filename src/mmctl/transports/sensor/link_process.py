@@ -60,6 +60,7 @@ from mmctl.errors import (
     ProtocolError,
     SafetyFault,
     TransportError,
+    again,
 )
 from mmctl.runtime.mailbox import Mailbox, MailboxLayout, Sample, check_clocks, now_ns
 from mmctl.transports.child import Described, LinkProcess
@@ -316,7 +317,7 @@ class SensorLinkProcess(LinkProcess[LinkLost]):
         elif now - f[_PUBLISHED] > self.period_ns:
             self._check_child()  # quiet for a period: is the child still there? (a syscall)
         if self._gone is not None:
-            raise self._gone
+            raise again(self._gone)
         if f[_ERROR] or self._missed_error:
             self._missed_error = False
             raise self._error()
