@@ -175,13 +175,16 @@ def test_a_move_is_a_synchronised_trapezoid_within_speed_and_acceleration() -> N
 
 def _ideal_run(cfg: Any, push: np.ndarray | None = None, push_at: float = 1e9,
                base_drift: float = 0.0, scaling: float = 1.0, pose_gaps: int = 0,
-               tell_repeats: bool = True) -> tuple[ToolCalibration, float]:
+               tell_repeats: bool = True,
+               late_sensor: bool = False) -> tuple[ToolCalibration, float]:
     """The routine on an arm that follows speedJ (times ``scaling``, the UR's speed
     slider) on a 4 rad/s^2 ramp, and the simulated sensor (sim.handle_*), 500 Hz.
     ``pose_gaps``: every second the arm's pose is repeated for that many cycles while
     the arm moves on at its last speed (no command reaches it either) and the sensor
     streams: a loaded machine's RTDE; ``tell_repeats`` False: the routine is not told
-    that the pose is a repeat."""
+    that the pose is a repeat (nor a sample's age); ``late_sensor``: in those gaps the
+    pose is new and the sensor's samples are late instead (each one the gap's first
+    measurement: a starved link)."""
     model = RobotModel(cfg.robot)
     sensor = HandleSensor(cfg)
     q = np.r_[np.asarray(cfg.robot.q_des), 0.0, 0.0, 0.0]
@@ -193,19 +196,28 @@ def _ideal_run(cfg: Any, push: np.ndarray | None = None, push_at: float = 1e9,
                           q[6:], 0.0)
     t, seq, dt = 0.0, 0, 0.002
     seen, seen_qd, repeats = q.copy(), qd.copy(), 0
+    late: tuple[np.ndarray, float] | None = None
     while cal.running and t < 120.0:
         t += dt
         seq += 1
         force = push if push is not None and t >= push_at else np.zeros(3)
         raw = sensor.measure(force, 0.0, model.fk_base(q, "sensor").rotation)
         gap = round(t / dt) % 500 < pose_gaps
-        if gap:
+        age = 0.0
+        if gap and late_sensor:
+            if late is None:
+                late = (raw, t)
+            raw, age = late[0], t - late[1]
+        else:
+            late = None
+        if gap and not late_sensor:
             repeats += 1
         else:
             seen, seen_qd, repeats = q.copy(), qd.copy(), 0
         cmd = cal.step(seen, seen_qd, raw, seq, t, scaling=scaling,
                        hold=repeats >= cfg.arm.hold_cycles,
-                       pose_new=repeats == 0 or not tell_repeats)
+                       pose_new=repeats == 0 or not tell_repeats,
+                       sample_age=age if tell_repeats else 0.0)
         assert np.abs(cmd).max() <= max(plan.speeds) + 1e-12
         if not gap:
             qd[:6] += np.clip(scaling * cmd - qd[:6], -4.0 * dt, 4.0 * dt)
@@ -245,7 +257,7 @@ def test_the_routine_weighs_every_pose_and_returns_to_the_start() -> None:
         [s.wrench for s in slow.samples]).mass == pytest.approx(MASS, rel=1e-6)
 
 
-def test_a_repeated_arm_pose_is_no_push() -> None:
+def test_a_repeated_arm_pose_or_a_late_sample_is_no_push() -> None:
     """A loaded machine's RTDE repeats the arm's pose for tens of ms while the wrist
     turns at 1 rad/s and the sensor streams (seen in CI: 22 repeats over ~0.5 s of a
     starved loop): compared with the repeated pose, the handle's weight looks turned,
@@ -256,6 +268,12 @@ def test_a_repeated_arm_pose_is_no_push() -> None:
     assert cal.peak_force < 0.5 * cfg.sensor.calibration.abort_force, cal.peak_force
     # what the check saw before: the same run, the repeats not told
     cal, _ = _ideal_run(cfg, pose_gaps=250, tell_repeats=False)
+    assert cal.phase == "aborted" and "on the handle beyond its weight" in (cal.error or "")
+    # the same with the sensor's samples late instead of the arm's poses
+    cal, _ = _ideal_run(cfg, pose_gaps=250, late_sensor=True)
+    assert cal.phase == "done" and cal.error is None and len(cal.samples) == 6
+    assert cal.peak_force < 0.5 * cfg.sensor.calibration.abort_force, cal.peak_force
+    cal, _ = _ideal_run(cfg, pose_gaps=250, late_sensor=True, tell_repeats=False)
     assert cal.phase == "aborted" and "on the handle beyond its weight" in (cal.error or "")
     # a push during the gaps is still caught, at the next new pose
     cal, t = _ideal_run(cfg, push=np.array([0.0, 8.0, 0.0]), push_at=4.1, pose_gaps=250)

@@ -167,6 +167,15 @@ def _run_daemon(sim: Sim, out: Path) -> subprocess.Popen[bytes]:
             env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
+def _end(daemon: subprocess.Popen[bytes]) -> None:
+    """Kill a daemon a test left running (its link processes end on the pipe's EOF):
+    first in a test's ``finally``, so that nothing before it can leave it orphaned (seen:
+    a simulation that no longer answered its socket left a daemon running for an hour)."""
+    if daemon.poll() is None:
+        daemon.kill()
+        daemon.wait(30)
+
+
 def _enable_eventually(sim: Sim, sock: Path, attempts: int = 5) -> dict[str, Any]:
     """``enable`` until it arms: on a loaded machine a starved simulation can miss the
     base's SDO answers during an enable (refused: "the base did not enable"); any other
@@ -273,12 +282,10 @@ def test_the_enabling_switch_through_the_fake_urs_inputs(sim: Sim) -> None:
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(120) == 0, out.read_text()[-3000:]
     finally:
+        _end(daemon)  # first: a simulation that no longer answers must not leave it
         sim.call("push", force=None)
         sim.call("enabling", held=True)
         sim.call("slider", fraction=1.0)
-        if daemon.poll() is None:
-            daemon.kill()
-            daemon.wait(30)
 
 
 @pytest.mark.parametrize("device, cause", [("sensor", "sensor_link_lost"),
@@ -331,10 +338,9 @@ def test_a_can_link_cut_under_the_armed_daemon_stops_and_comes_back_on_enable(
         assert not [e for e in events if e.get("event") == "cycle_failed"], events
         assert "Traceback" not in out.read_text()
     finally:
+        _end(daemon)
         sim.call("push", force=None)
         sim.call("fault", name=f"{device}_unplugged", on=False)
-        if daemon.poll() is None:
-            daemon.kill()
 
 
 def test_a_hung_sensor_link_does_not_stop_the_loop(sim: Sim) -> None:
@@ -376,9 +382,8 @@ def test_a_hung_sensor_link_does_not_stop_the_loop(sim: Sim) -> None:
     finally:
         if pid is not None:
             os.kill(pid, signal.SIGCONT)
+        _end(daemon)
         sim.call("push", force=None)
-        if daemon.poll() is None:
-            daemon.kill()
 
 
 def test_ctrl_c_ends_the_sim_cleanly(tmp_path: Path) -> None:

@@ -75,6 +75,9 @@ POSITION_TOLERANCE = 0.005
 VELOCITY_TOLERANCE = 0.005
 #: [s] how long a pose may take to settle after its move's planned end
 SETTLE_TIMEOUT = 5.0
+#: [s] the oldest wrench the push check compares with this cycle's pose: five periods
+#: at 500 Hz, the sensor's default stale_timeout (the wrist turns 0.01 rad at 1 rad/s)
+CHECK_SKEW = 0.01
 #: fresh sensor samples a pose's average needs at least
 MIN_SAMPLES = 10
 #: [rad] the least angle between two chosen gravity directions
@@ -547,19 +550,22 @@ class ToolCalibration:
                 "error": self.error}
 
     def step(self, q: Vec, qd: Vec, raw: Vec, sequence: int, now: float,
-             hold: bool = False, scaling: float = 1.0, pose_new: bool = True) -> Vec:
+             hold: bool = False, scaling: float = 1.0, pose_new: bool = True,
+             sample_age: float = 0.0) -> Vec:
         """One cycle: measured ``q``, ``qd`` (9,) (arm, base), the raw wrench (6,) and
         its ``sequence``, ``now`` [s]; ``hold``: the arm's pose is stale (command zero,
         the motion's clock stands); ``scaling``: the share of a commanded speed the arm
         executes (the UR's speed slider: the motion's clock runs that much slower, so
         the reference waits for the arm); ``pose_new``: ``q`` is this cycle's sample
-        (False: one repeated from an earlier cycle).  Returns the arm's velocity command
-        (6,) [rad/s] (zero once it is no longer :attr:`running`).
+        (False: one repeated from an earlier cycle); ``sample_age``: how old the wrench
+        is [s] (``now`` less its reception).  Returns the arm's velocity command (6,)
+        [rad/s] (zero once it is no longer :attr:`running`).
 
-        The push check compares a fresh wrench only with a new pose: a repeated pose
-        lags the turning wrist (1 rad/s for 40 ms of repeats is 0.04 rad, the handle's
-        weight turned by that much: seen as a 5 N "push" on a loaded machine), and
-        the next new pose comes with the next fresh sample (both stream at the loop's
+        The push check compares a wrench with a pose of its time only: a new pose and a
+        sample at most :data:`CHECK_SKEW` old.  Else the wrist has turned between the two
+        (at 1 rad/s, 0.5 s of a starved loop's repeated poses or of a starved sensor
+        link's late sample turn the handle's weight into a 5-8 N "push": both seen in CI
+        runs under load); the check waits for the next pair (both stream at the loop's
         rate)."""
         dt = max(now - self._last_now, 0.0)
         self._last_now = now
@@ -577,7 +583,7 @@ class ToolCalibration:
         r = self.model.fk_base(q, "sensor").rotation
         fresh = sequence != self._last_seq
         self._last_seq = sequence
-        if pose_new and sequence != self._checked_seq:  # (else it waits for a new pose)
+        if pose_new and sample_age <= CHECK_SKEW and sequence != self._checked_seq:
             self._checked_seq = sequence
             if not self._check(raw, r, now):
                 return self._zero

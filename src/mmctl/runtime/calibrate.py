@@ -210,7 +210,7 @@ class CalibrationCommands(_Parts):
             return result
         cmd = c.step(result.q, result.qd, wrench.as_array(), wrench.sequence, now,
                      hold=repeats >= self.cfg.arm.hold_cycles, scaling=self.speed_scaling,
-                     pose_new=repeats == 0)
+                     pose_new=repeats == 0, sample_age=now - wrench.timestamp)
         if c.phase == "done":
             self._calibration_done(c)
         if c.phase == "aborted":
