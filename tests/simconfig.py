@@ -32,8 +32,9 @@ def _merge(into: dict[str, Any], extra: dict[str, Any]) -> None:
 LOAD_PROOF: dict[str, Any] = {
     "arm": {"stale_cycles": 10_000, "watchdog_min_frequency": 1.0},
     "sensor": {"wrench": {"stale_timeout": 5.0}},
-    # (sdo_timeout: a starved simulation answers the enable's SDOs late, seen > 0.5 s)
-    "base": {"canopen": {"heartbeat_timeout": 5.0, "sdo_timeout": 3.0},
+    # (sdo_timeout: a starved simulation answers the SDOs late: seen > 0.5 s at an
+    # enable, > 3 s at start-up with both cores busy: "no drive answers")
+    "base": {"canopen": {"heartbeat_timeout": 5.0, "sdo_timeout": 10.0},
              "command_watchdog": 10.0},
     "loop": {"max_consecutive_misses": 5_000, "max_total_misses": 1_000_000_000},
     # (an enable that reconnects the arm starts a ur_rtde process: > 5 s when starved)

@@ -42,9 +42,10 @@ class Daemon:
         digits = "".join(c for c in os.environ.get("PYTEST_XDIST_WORKER", "gw0") if c.isdigit())
         host = f"127.{10 + int(digits or 0)}.{203 + os.getpid() % 40}.{next(_hosts)}"
         self.socket = tmp / "run" / "mmctl.sock"
+        extra = dict(extra or {})
         self.config = write_sim_config(host, tmp, {
             "name": "stop-path-test", "sim": {"human": False, "auto_enable": False},
-            "daemon": {"socket_path": str(self.socket)}, **(extra or {})})
+            **extra, "daemon": {**extra.get("daemon", {}), "socket_path": str(self.socket)}})
         self.sim_socket = tmp / "sim.sock"
         self.sim_log = tmp / "simlog"
         self.out = tmp / "daemon.log"
