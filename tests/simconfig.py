@@ -31,7 +31,9 @@ def _merge(into: dict[str, Any], extra: dict[str, Any]) -> None:
 #: themselves are tested on a scripted clock (test_fault_matrix.py).
 LOAD_PROOF: dict[str, Any] = {
     "arm": {"stale_cycles": 10_000, "watchdog_min_frequency": 1.0},
-    "sensor": {"wrench": {"stale_timeout": 5.0}},
+    # (can.connect_timeout: a start-up under load saw no reply to a calibration read
+    # within the 0.5 s default)
+    "sensor": {"wrench": {"stale_timeout": 5.0}, "can": {"connect_timeout": 10.0}},
     # (sdo_timeout: a starved simulation answers the SDOs late: seen > 0.5 s at an
     # enable, > 3 s at start-up with both cores busy: "no drive answers")
     "base": {"canopen": {"heartbeat_timeout": 5.0, "sdo_timeout": 10.0},
