@@ -58,13 +58,14 @@ def server() -> Iterator[SocketcandServer]:
 
 def base_cfg(server: SocketcandServer, **canopen: object) -> Config:
     """Generous master-side timeouts (heartbeat, SDO): a loaded machine (load 8 on 2 cores
-    here) must not look like a dead drive (SDO timeouts at 1 s were seen);
+    here) must not look like a dead drive (SDO timeouts at 1 s were seen, and at 5 s with
+    both cores busy: the fake drives' receive thread falls behind);
     the drives' own watchdog at 2 s (the net when the master's process dies)."""
     host, port = server.address
     return config_from_dict({"base": {
         "canopen": {"interface": "socketcand", "host": host, "port": port,
                     "channel": f"blp-{uuid.uuid4().hex[:10]}", "heartbeat_timeout": 5.0,
-                    "sdo_timeout": 5.0, **canopen},
+                    "sdo_timeout": 10.0, **canopen},
         "command_watchdog": 2.0}})
 
 

@@ -304,25 +304,29 @@ def test_mode_changes_at_run_time(daemon: Proc, capsys: pytest.CaptureFixture[st
 def test_pose_record_writes_the_arms_pose_into_a_config(
         daemon: Proc, capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """`mmctl pose record --write`: the daemon's newest arm sample becomes robot.q_des of
-    a copy of config/robot.yaml, which keeps its comments and still loads.  The push
-    is let go first: under it the arm moves on, and not along a line (the redundancy
-    turns joints back and forth), so a moving pose cannot be pinned."""
+    a copy of config/robot.yaml, which keeps its comments and still loads.  Recorded at
+    rest (let go, disarmed): under the push the arm moves on, and not along a line (the
+    redundancy turns joints back and forth), so a moving pose cannot be pinned."""
     target = tmp_path / "robot.yaml"
     text = (ROOT / "config" / "robot.yaml").read_text()
     target.write_text(text)
     push = daemon.sim("status")["push"]
     daemon.sim("push", force=None)
+    # disarmed: the arm speed-stops and stays (armed, the redundancy can creep on for long)
+    assert daemon.call("disable")["state"] == "disarmed"
     wait_for(lambda: np.abs(daemon.sim("status")["arm_qd"]).max() < 1e-6, "the arm at rest",
              daemon)
-    before = np.array(daemon.status()["robot"]["q"][:6])
+    at_rest = np.array(daemon.sim("status")["arm_q"])
+    wait_for(lambda: np.abs(np.array(daemon.status()["robot"]["q"][:6]) - at_rest).max()
+             < 1e-4, "the daemon's status at the rest pose", daemon)
     assert main(["pose", "record", "--write", str(target), "--socket", str(daemon.socket)]) == 0
     out = capsys.readouterr().out
     assert out.startswith("robot:\n  q_des: [") and f"written to {target}" in out, out
     q = np.array(load_config(target).robot.q_des)
-    np.testing.assert_allclose(q, before, atol=1e-4)  # (5 decimals written)
-    np.testing.assert_allclose(q, daemon.sim("status")["arm_q"], atol=1e-4)
+    np.testing.assert_allclose(q, at_rest, atol=1e-4)  # (5 decimals written)
     assert target.read_text().count("#") == text.count("#") + 1
-    daemon.sim("push", force=push)  # the tests after this one push on
+    assert daemon.call("enable")["state"] == "armed"  # the tests after this one push on
+    daemon.sim("push", force=push)
 
 
 def test_the_reduced_profile_at_run_time(daemon: Proc,
