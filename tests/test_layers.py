@@ -54,14 +54,11 @@ def test_the_daemon_loads_no_optional_extra() -> None:
         "import mmctl.cli, mmctl.commands.run\n"
         "from mmctl.config import default_config\n"
         "from mmctl.runtime.factory import create_daemon\n"
-        "create_daemon(default_config(), None, attach_sim=False)\n"
-        "print(json.dumps([sorted({m.split('.')[0] for m in sys.modules}),\n"
-        "                  'mmctl.runtime.parts' in sys.modules]))\n")
+        "create_daemon(default_config(), None)\n"
+        "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=120).stdout
-    names, parts_loaded = json.loads(out)
-    loaded = set(names)
-    assert parts_loaded is False  # the type checker's view of the daemon's parts only
+    loaded = set(json.loads(out))
     optional = {m for mods in EXTRAS.values() for m in mods}
     assert loaded & optional == set()
     assert {"numpy", "pinocchio", "can", "canopen"} <= loaded  # the check sees imports
@@ -98,3 +95,42 @@ def test_mode_names_come_from_one_enum() -> None:
     sub = build_parser()._subparsers._group_actions[0].choices  # type: ignore[union-attr]
     mode_cmd = sub["mode"]
     assert any(tuple(a.choices or ()) == STRATEGIES for a in mode_cmd._actions)
+
+
+def test_the_runtime_has_no_import_cycle_and_no_mixin() -> None:
+    """The daemon's runtime is layered: no module of mmctl.runtime imports (even for the
+    type checker only) one that imports it back, and the daemon composes its parts
+    (the loop's runtime, the operator, the calibration) instead of inheriting them."""
+    import ast
+    from pathlib import Path
+
+    import mmctl.runtime
+    from mmctl.runtime.daemon import Daemon
+
+    root = Path(mmctl.runtime.__file__).parent
+    graph: dict[str, set[str]] = {}
+    for path in root.glob("*.py"):
+        name = f"mmctl.runtime.{path.stem}"
+        deps: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                mods = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+                deps |= {m for m in mods if m.startswith("mmctl.runtime.")}
+            elif isinstance(node, ast.Import):
+                deps |= {a.name for a in node.names if a.name.startswith("mmctl.runtime.")}
+        graph[name] = deps - {name}
+    seen: dict[str, int] = {}  # 1: on the path, 2: done
+
+    def visit(mod: str, path: tuple[str, ...]) -> None:
+        if seen.get(mod) == 1:
+            raise AssertionError(f"import cycle: {' -> '.join(path + (mod,))}")
+        if seen.get(mod) == 2 or mod not in graph:
+            return
+        seen[mod] = 1
+        for dep in sorted(graph[mod]):
+            visit(dep, path + (mod,))
+        seen[mod] = 2
+
+    for mod in sorted(graph):
+        visit(mod, ())
+    assert Daemon.__bases__ == (object,)

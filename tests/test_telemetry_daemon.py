@@ -12,7 +12,7 @@ import pytest
 
 from mmctl.config import config_from_dict
 from mmctl.errors import IpcError
-from mmctl.runtime.factory import create_daemon
+from mmctl.runtime.factory import create_daemon, open_sim
 from mmctl.runtime.ipc import request
 from mmctl.telemetry import layout
 from mmctl.telemetry.recording import column_name, load_recording, recording_metrics
@@ -43,7 +43,9 @@ def test_daemon_records_trial_and_metrics_match(tmp_path: Path, loopback_host: s
     rrd = tmp_path / "run.rrd"
     sock = tmp_path / "mmctl.sock"
     service = TelemetryService(cfg, Destinations(record=str(rrd)))
-    daemon = create_daemon(cfg, sock, telemetry=service)
+    sim = open_sim(cfg)  # the simulated robot's process: the caller's, as `mmctl run`'s
+    assert sim is not None
+    daemon = create_daemon(cfg, sock, telemetry=service, sim=sim)
     result: dict[str, Any] = {}
     publisher: dict[str, Any] = {}
     runner = threading.Thread(target=lambda: result.update(rc=daemon.run(install_signals=False)),
@@ -63,6 +65,7 @@ def test_daemon_records_trial_and_metrics_match(tmp_path: Path, loopback_host: s
     finally:
         daemon.request_stop("test")
         runner.join(WAIT)
+        sim.close()
     assert not runner.is_alive() and result.get("rc") == 0
 
     pub = publisher["pub"]

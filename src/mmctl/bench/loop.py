@@ -190,12 +190,16 @@ def _stdout_to_stderr() -> Iterator[None]:
 
 def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
     """Run the daemon's loop with both waits in alternating windows; their figures."""
-    from mmctl.runtime.factory import create_daemon
+    from mmctl.runtime.factory import create_daemon, open_sim
     from mmctl.telemetry.service import TelemetryService
 
     wait = AlternatingWait(int(cfg.loop.spin_margin * 1e9))
+    sim = open_sim(cfg)  # its own simulated robot, before the daemon connects
+    if sim is None:
+        raise MmctlError("bench loop needs the simulated robot's own process "
+                         "(sim.enabled, CAN on socketcand)")
     daemon = create_daemon(cfg, socket_path=None, telemetry=TelemetryService(cfg),
-                           loop_wait=wait)
+                           loop_wait=wait, sim=sim)
     result: dict[str, Any] = {"seconds": args.seconds, "windows": args.windows,
                               "rate_hz": cfg.loop.rate_hz,
                               "rt_priority": cfg.loop.rt_priority,
@@ -210,10 +214,7 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         lat = daemon.cpu_latency
         result["cpu_dma_latency_us"] = lat.us if lat is not None and lat.held else None
         tare_and_enable(daemon)
-        if daemon.sim is None:
-            raise MmctlError("bench loop needs the simulated robot's own process "
-                             "(sim.enabled, CAN on socketcand)")
-        daemon.sim.start_human()
+        sim.start_human()
         time.sleep(1.0)  # warm-up
         result["loop"], result["sleep_baseline"] = _interleaved(daemon, wait, args.seconds,
                                                                 args.windows)
@@ -231,7 +232,10 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
             result["force_to_command"] = _force_to_command(daemon, args.latency_steps)
         result["faults"] = daemon.safety.faults
     finally:
-        daemon.shutdown()
+        try:
+            daemon.shutdown()
+        finally:
+            sim.close()
     step = result["loop"].get("step_p50_us")
     if step:
         result["step_ratio_p50"] = round(step / result["idk_step"]["p50_us"], 3)

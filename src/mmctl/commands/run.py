@@ -2,8 +2,9 @@
 
 Without --config it uses $MMCTL_CONFIG, else ./config/sim.yaml: the simulated robot
 (fake UR controller, CAN sensor, CANopen drives and a simulated person pushing the
-handle), in a process of its own (`mmctl sim`): the daemon attaches to one that
-answers, or starts its own and stops it after the robot stopped.  It arms itself, so
+handle), in a process of its own (`mmctl sim`): this command attaches to one that
+answers, or starts its own before the daemon connects and stops it after the robot
+stopped (the daemon itself never starts or stops a simulation).  It arms itself, so
 the robot moves within seconds.  With config/robot.yaml it drives the real robot and
 starts DISARMED: `mmctl enable`.
 
@@ -15,6 +16,10 @@ Push the simulated handle yourself from another terminal: `mmctl sim push 30 0 0
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from mmctl.runtime.daemon import Daemon
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -76,15 +81,66 @@ def _run(args: argparse.Namespace) -> int:
 
         input_log = InputLog(args.record_inputs, cfg)
         input_log.open()  # before anything starts: a folder in use is one line
-    daemon = create_daemon(cfg, socket_path, sim_log=Path(args.sim_log) if args.sim_log else None,
-                           telemetry=telemetry, input_log=input_log)
-    view = None
-    if sys.stdout.isatty() and not args.log_json and not args.no_live:
-        from mmctl.runtime.liveview import LiveView
+    from mmctl.runtime.factory import wants_sim_process
 
-        view = LiveView(daemon.live, stderr=True).start()  # before any child: theirs too
+    # the simulated robot is this command's, never the daemon's: opened before the
+    # daemon connects to it, closed after the daemon stopped (on the robot: none)
+    sim = None
+    daemon = None
+    view = None
     try:
-        return daemon.run(duration=args.duration)
+        if wants_sim_process(cfg):
+            from mmctl.runtime.sim_link import SimLink
+
+            sim = SimLink(cfg, log_dir=Path(args.sim_log) if args.sim_log else None)
+        daemon = create_daemon(cfg, socket_path, sim=sim, telemetry=telemetry,
+                               input_log=input_log)
+        daemon.install_signals()  # a signal while the simulation starts is a stop too
+        if sys.stdout.isatty() and not args.log_json and not args.no_live:
+            from mmctl.runtime.liveview import LiveView
+
+            view = LiveView(daemon.live, stderr=True).start()  # before any child: theirs too
+        if sim is not None:
+            sim.start(lambda: daemon is not None and daemon.stopping)
+        on_ready = auto_enable if sim is not None and cfg.sim.auto_enable else None
+        return daemon.run(duration=args.duration, install_signals=False, on_ready=on_ready)
     finally:
         if view is not None:
             view.stop()
+        if sim is not None:
+            sim.close()
+        if input_log is not None:
+            input_log.close()  # (idempotent: the daemon's shutdown closes it too)
+
+
+def auto_enable(daemon: Daemon) -> None:
+    """Simulation only, once the daemon is ready: tare, arm, and let the simulated
+    person start (within sim.ready_timeout: a starved machine's tare takes its 100
+    samples slowly).  A failure is logged, not fatal: the operator can `mmctl enable`."""
+    import time
+
+    import structlog
+
+    from mmctl.errors import MmctlError
+
+    log = structlog.get_logger("mmctl.daemon")
+    cfg = daemon.cfg
+    deadline = time.monotonic() + cfg.sim.ready_timeout
+    try:
+        daemon.call("tare")
+        while daemon.core.taring and time.monotonic() < deadline and daemon.loop.running:
+            time.sleep(0.01)
+        while True:  # a condition may flicker while the fakes settle: retry a while
+            try:
+                daemon.call("enable")
+                break
+            except MmctlError:
+                if time.monotonic() > deadline or daemon.stopping:
+                    raise
+                time.sleep(0.1)
+    except MmctlError as exc:
+        log.warning("auto_enable_failed", error=str(exc))
+        return
+    log.info("auto_enabled", mode=daemon.core.mode)
+    if cfg.sim.human and daemon.sim is not None:  # (else a push set meanwhile stays)
+        daemon.sim.start_human()

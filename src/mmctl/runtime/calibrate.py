@@ -1,7 +1,7 @@
 """The daemon's side of `mmctl calibrate tool`: the control socket's ``calibrate``
-request and the routine's part of each cycle.  A part of
-:class:`~mmctl.runtime.daemon.Daemon`, like :mod:`mmctl.runtime.operator` and
-:mod:`mmctl.runtime.driver`.
+request and the routine's part of each cycle (:class:`Calibrations`, which holds the
+loop's :class:`~mmctl.runtime.driver.LoopRuntime`; composed by
+:class:`~mmctl.runtime.daemon.Daemon`).
 
 ``{"cmd": "calibrate", "action": "start", "poses": N}`` plans the poses from the arm's
 newest sample (on the request's thread: it takes milliseconds), then the loop checks
@@ -9,7 +9,7 @@ that the robot is armed, still, not taring, and nobody pushes the handle, and in
 a :class:`~mmctl.control.calibration.ToolCalibration` (refused with a reason
 otherwise); the reply says how many poses and how long.  While it runs, the loop's
 controller idles (its state held at rest, every fault check as when disarmed) and
-:meth:`CalibrationCommands._calibration_cycle` sends the routine's speedJ and a zero
+:meth:`Calibrations.cycle` sends the routine's speedJ and a zero
 base twist instead.  ``"action": "status"`` reports its progress and, once done, the
 fit (:func:`~mmctl.control.calibration.fit_tool_load`, computed on the loop in the
 cycle that ends it); ``"action": "abort"`` stops it.  An aborted calibration (a push,
@@ -39,6 +39,7 @@ from mmctl.control.calibration import (
 )
 from mmctl.errors import MmctlError
 from mmctl.runtime.core import CycleResult
+from mmctl.runtime.driver import LoopRuntime
 from mmctl.runtime.safety import log_events
 from mmctl.types import Wrench
 
@@ -53,30 +54,38 @@ _Z3 = np.zeros(3)
 
 if TYPE_CHECKING:
     from mmctl.model.robot import RobotModel
-    from mmctl.runtime.parts import DaemonParts as _Parts
-else:
-    _Parts = object
 
 
-class CalibrationCommands(_Parts):
-    """``calibrate`` requests and the routine's cycle (see the module docstring)."""
+class Calibrations:
+    """``calibrate`` requests and the routine's cycle (see the module docstring).  The
+    routine itself is the runtime's :attr:`~mmctl.runtime.driver.LoopRuntime.calibration`
+    (the loop reads it); its fit is :attr:`fit`."""
 
-    calibration: ToolCalibration | None
-    calibration_fit: ToolLoadFit | None
-    _planner: RobotModel | None
-    _planner_lock: threading.Lock
+    def __init__(self, runtime: LoopRuntime):
+        self.rt = runtime
+        self.cfg = runtime.cfg
+        #: the fit of the newest calibration that finished (None: none yet)
+        self.fit: ToolLoadFit | None = None
+        self._planner: RobotModel | None = None
+        self._planner_lock = threading.Lock()
+        runtime.calibration_cycle = self.cycle
 
-    def _cmd_calibrate(self, req: Mapping[str, Any]) -> Any:
+    @property
+    def current(self) -> ToolCalibration | None:
+        """The newest calibration (running or ended), or None."""
+        return self.rt.calibration
+
+    def command(self, req: Mapping[str, Any]) -> Any:
         action = req.get("action", "status")
         if action == "start":
-            return self._calibration_request(req.get("poses"))
+            return self._request(req.get("poses"))
         if action == "status":
-            return self._calibration_report()
+            return self.report()
         if action == "abort":
-            return self._on_loop(self._calibration_abort)
+            return self.rt.on_loop(self._abort)
         raise MmctlError(f"calibrate: action {action!r}: must be 'start', 'status' or 'abort'")
 
-    def _calibration_request(self, poses: Any) -> dict[str, Any]:
+    def _request(self, poses: Any) -> dict[str, Any]:
         """Plan on this thread from the newest sample, then start on the loop."""
         cal = self.cfg.sensor.calibration
         n = cal.poses if poses is None else poses
@@ -84,12 +93,12 @@ class CalibrationCommands(_Parts):
         if isinstance(n, bool) or not isinstance(n, int) or not lo <= n <= hi:
             raise MmctlError(f"calibrate: poses = {n!r}: must be a whole number within "
                              f"[{lo}, {hi}]")
-        last = self.last
+        last = self.rt.last
         if last is None or not np.isfinite(last.q).all():
             raise MmctlError("refused to calibrate: no arm sample yet")
-        self._calibration_precheck(last)  # at once, before the planning
+        self._precheck(last)  # at once, before the planning
         q = last.q.copy()
-        caps = self.core.caps
+        caps = self.rt.core.caps
         with self._planner_lock:  # one model per thread: this one for the requests'
             if self._planner is None:
                 from mmctl.model.robot import RobotModel
@@ -98,23 +107,23 @@ class CalibrationCommands(_Parts):
             plan = plan_poses(self._planner, q[:6], n, cal, self.cfg.limits,
                               self.cfg.safety.max_condition, float(caps["ee_speed_m_s"] or 0.25),
                               self.cfg.walls.ee_box)
-        started: dict[str, Any] = self._on_loop(lambda: self._calibration_begin(plan, q))
+        started: dict[str, Any] = self.rt.on_loop(lambda: self._begin(plan, q))
         return started
 
-    def _calibration_precheck(self, last: CycleResult) -> None:
+    def _precheck(self, last: CycleResult) -> None:
         """MmctlError unless the robot is armed, still, not taring, not calibrating and
         nobody pushes the handle (as the newest cycle saw it)."""
-        current = self.calibration
+        current = self.rt.calibration
         if current is not None and current.running:
             raise MmctlError("refused to calibrate: a calibration is running "
                              f"({current.progress()['phase']} at pose {current.index + 1})")
-        if not self.safety.armed:
-            raise MmctlError(f"refused to calibrate: the robot is {self.safety.state.value}; "
+        if not self.rt.safety.armed:
+            raise MmctlError(f"refused to calibrate: the robot is {self.rt.safety.state.value}; "
                              "it needs to be armed (`mmctl enable`) and still, hands off "
                              "the handle")
-        if self.core.taring:
+        if self.rt.core.taring:
             raise MmctlError("refused to calibrate: a tare is in progress")
-        if self.ustate.arm_repeats >= self.cfg.arm.hold_cycles:
+        if self.rt.ustate.arm_repeats >= self.cfg.arm.hold_cycles:
             raise MmctlError("refused to calibrate: the arm's samples are not coming in")
         joint = float(np.abs(last.qd[:6]).max())
         base = float(np.hypot(last.qd[6], last.qd[7]))
@@ -131,56 +140,56 @@ class CalibrationCommands(_Parts):
             raise MmctlError(f"refused to calibrate: {force:.1f} N on the handle (more than "
                              f"sensor.calibration.abort_force {limit:g} N): hands off")
 
-    def _calibration_begin(self, plan: Plan, q_planned: Any) -> dict[str, Any]:
+    def _begin(self, plan: Plan, q_planned: Any) -> dict[str, Any]:
         """Loop thread: check again and install the routine."""
-        last = self.last
+        last = self.rt.last
         if last is None:
             raise MmctlError("refused to calibrate: no arm sample yet")
-        self._calibration_precheck(last)
+        self._precheck(last)
         moved = float(np.abs(last.q[:6] - q_planned[:6]).max())
         if moved > 0.01:
             raise MmctlError(f"refused to calibrate: the arm moved {moved:.3f} rad while "
                              "the poses were planned; try again")
         cal = self.cfg.sensor.calibration
         w = self.cfg.sensor.wrench
-        self.calibration_fit = None
-        self.calibration = ToolCalibration(plan, cal, (w.handle_mass, np.asarray(w.handle_com)),
-                                           self.core.model, last.q[6:9], self.core.clock())
+        self.fit = None
+        self.rt.calibration = ToolCalibration(plan, cal, (w.handle_mass, np.asarray(w.handle_com)),
+                                           self.rt.core.model, last.q[6:9], self.rt.core.clock())
         seconds = plan.duration(cal.settle_time, cal.average_time)
         log.info("calibration_started", poses=len(plan.poses), estimated_s=round(seconds, 1),
                  speeds=[round(s, 3) for s in plan.speeds])
         return {"started": True, "poses": len(plan.poses), "estimated_s": round(seconds, 1),
                 "plan": [[round(float(x), 5) for x in p] for p in plan.poses]}
 
-    def _calibration_abort(self) -> dict[str, Any]:
+    def _abort(self) -> dict[str, Any]:
         """Loop thread: the operator's abort: stop the robot (disarmed)."""
-        c = self.calibration
+        c = self.rt.calibration
         if c is not None and c.running:
-            c.abort("aborted by the operator", self.core.clock())
-            self._calibration_stop(c)
-        return self._calibration_report()
+            c.abort("aborted by the operator", self.rt.core.clock())
+            self._stop(c)
+        return self.report()
 
-    def _calibration_stop(self, c: ToolCalibration) -> None:
+    def _stop(self, c: ToolCalibration) -> None:
         """Loop thread: an aborted routine: speedStop, zero base velocity, disarmed."""
-        safety, stop, events = sm.disable(self.ustate.safety)
-        self.ustate = self.ustate._replace(safety=safety)
-        log_events(events, self._limiter)
+        safety, stop, events = sm.disable(self.rt.ustate.safety)
+        self.rt.ustate = self.rt.ustate._replace(safety=safety)
+        log_events(events, self.rt.limiter)
         if stop:
-            self._send_stop()
+            self.rt.send_stop()
         c.closed = True
         log.warning("calibration_aborted", reason=c.error, pose=c.index + 1,
                     weighed=len(c.samples))
-        self._update_status()
+        self.rt.update_status()
 
-    def _calibration_report(self) -> dict[str, Any]:
+    def report(self) -> dict[str, Any]:
         """Progress of the last calibration; once done, its fit and what it weighed."""
-        c = self.calibration
+        c = self.rt.calibration
         if c is None:
             return {"phase": "none"}
         out = c.progress()
         w = self.cfg.sensor.wrench
         out["configured"] = {"handle_mass": w.handle_mass, "handle_com": list(w.handle_com)}
-        fit = self.calibration_fit
+        fit = self.fit
         if out["phase"] == "done" and fit is not None:
             out["fit"] = fit.as_dict()
             out["samples"] = [
@@ -193,14 +202,14 @@ class CalibrationCommands(_Parts):
                                  "torque_Nm": round(c.peak_torque, 4)}
         return out
 
-    def _calibration_cycle(self, c: ToolCalibration, result: CycleResult | None,
+    def cycle(self, c: ToolCalibration, result: CycleResult | None,
                            wrench: Wrench | None, repeats: int) -> CycleResult | None:
         """Loop thread, after the safety monitor: the routine's command in place of the
         controller's (arm: its speedJ; base: zero), or its end.  ``repeats``: cycles the
         arm's pose has been repeated (0: this cycle's sample)."""
-        now = self.core.clock()
-        if not self.safety.armed:  # a fault (the stop went out) or disable
-            cause = self.safety.latched.value if self.safety.latched else "disable"
+        now = self.rt.core.clock()
+        if not self.rt.safety.armed:  # a fault (the stop went out) or disable
+            cause = self.rt.safety.latched.value if self.rt.safety.latched else "disable"
             c.abort(f"the robot was disarmed ({cause})", now)
             c.closed = True
             log.warning("calibration_aborted", reason=c.error, pose=c.index + 1,
@@ -209,23 +218,23 @@ class CalibrationCommands(_Parts):
         if result is None or wrench is None:
             return result
         cmd = c.step(result.q, result.qd, wrench.as_array(), wrench.sequence, now,
-                     hold=repeats >= self.cfg.arm.hold_cycles, scaling=self.speed_scaling,
+                     hold=repeats >= self.cfg.arm.hold_cycles, scaling=self.rt.speed_scaling,
                      pose_new=repeats == 0, sample_age=now - wrench.timestamp)
         if c.phase == "done":
-            self._calibration_done(c)
+            self._done(c)
         if c.phase == "aborted":
-            self._calibration_stop(c)
+            self._stop(c)
             return result
         return result._replace(qd_arm=cmd, qd_cmd=np.concatenate((cmd, _Z3)), twist=_Z3)
 
-    def _calibration_done(self, c: ToolCalibration) -> None:
+    def _done(self, c: ToolCalibration) -> None:
         """Loop thread, once: the fit (a 10-column least squares: tens of us)."""
         try:
             fit = fit_tool_load([s.rotation for s in c.samples], [s.wrench for s in c.samples])
         except ValueError as exc:  # (a bug: every pose's numbers are finite)
             c.phase, c.error = "aborted", f"no fit: {exc}"
             return
-        self.calibration_fit = fit
+        self.fit = fit
         c.closed = True
         log.info("calibration_done", seconds=round(float(c.finished or 0) - c.started, 1),
                  mass_kg=round(fit.mass, 4), com_m=[round(float(x), 4) for x in fit.com],

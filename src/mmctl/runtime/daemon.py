@@ -1,10 +1,16 @@
 """The daemon: devices + control core + safety + loop + control socket + systemd notify.
 
 This module is the lifecycle (open, start, run, shutdown, signals, readiness) and the
-status; :class:`Daemon` composes it with the operator's commands
-(:mod:`mmctl.runtime.operator`) and the cycle driver (:mod:`mmctl.runtime.driver`).
+status.  :class:`Daemon` holds three parts, none of which knows the daemon:
 
-One cycle (:meth:`Daemon.cycle`, on the loop thread):
+- :class:`~mmctl.runtime.driver.LoopRuntime`: the loop thread's cycle (read -> pure
+  update -> write) and what it works on;
+- :class:`~mmctl.runtime.operator.Operator`: the control socket's commands, which reach
+  the loop as values in its inbox, and an enable's device work off the loop thread;
+- :class:`~mmctl.runtime.calibrate.Calibrations`: `mmctl calibrate tool`.
+
+One cycle (:meth:`LoopRuntime.cycle <mmctl.runtime.driver.LoopRuntime.cycle>`, on the
+loop thread):
 
 1. take operator commands queued by the control socket (enable, disable, mode, ...);
 2. read the arm, the sensor and the base; every SPEC §5 condition found goes into this
@@ -29,13 +35,11 @@ from __future__ import annotations
 import gc
 import math
 import os
-import queue
 import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import Future
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -45,35 +49,29 @@ import structlog
 from mmctl.config import Config
 from mmctl.control import safety as sm
 from mmctl.control.safety import Safety
-from mmctl.control.update import Readings, Update, UpdateState
-from mmctl.errors import MmctlError
-from mmctl.runtime.calibrate import CalibrationCommands
+from mmctl.control.update import UpdateState
+from mmctl.errors import FaultCause, MmctlError
+from mmctl.runtime.calibrate import Calibrations
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.devices import Devices
-from mmctl.runtime.ipc import Handler
+from mmctl.runtime.driver import PHASES, LoopRuntime, SampleHook
+from mmctl.runtime.ipc import Handler, Peer
 from mmctl.runtime.ipc_process import ProcessControlServer
-from mmctl.runtime.logging import RateLimiter
-from mmctl.runtime.loop import CycleLoop, GcInSlack, Wait
+from mmctl.runtime.loop import Tick, Wait
+from mmctl.runtime.notify import Notifier
+from mmctl.runtime.operator import Operator
+from mmctl.runtime.pmqos import CpuLatencyRequest
+from mmctl.runtime.safety import SafetyState, log_events
 
 if TYPE_CHECKING:
-    from mmctl.control.calibration import ToolCalibration, ToolLoadFit
-    from mmctl.model.robot import RobotModel
+    from mmctl.control.calibration import ToolCalibration
     from mmctl.runtime.inputlog import InputLog
     from mmctl.runtime.sim_link import SimLink
     from mmctl.telemetry.service import TelemetryService
-from mmctl.runtime.driver import PHASES, CycleDriver
-from mmctl.runtime.notify import Notifier
-from mmctl.runtime.operator import OperatorCommands
-from mmctl.runtime.pmqos import CpuLatencyRequest
-from mmctl.runtime.safety import SafetyState, log_events
-from mmctl.runtime.timing import TimingRing
+
+__all__ = ["PHASES", "STOP_SIGNALS", "Daemon", "SampleHook", "StartAborted"]
 
 log = structlog.get_logger("mmctl.daemon")
-
-#: The hook telemetry attaches: called on the loop thread once per cycle as
-#: ``hook(result, cycle, t, safety)`` (the cycle's CycleResult, its index, its deadline
-#: since the origin [s], the safety state's name); must not block.
-SampleHook = Callable[[CycleResult, int, float, str], None]
 
 #: Signals that end the daemon by default and are turned into a stop instead: the
 #: service manager's (TERM), a terminal's (INT: Ctrl-C, QUIT: Ctrl-\, HUP: the ssh
@@ -117,18 +115,19 @@ class StartAborted(Exception):
     """A stop request arrived while :meth:`Daemon.open` was still starting."""
 
 
-class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
+class Daemon:
     """Composition root of the running daemon (see the module docstring).
 
     cfg: the configuration; devices: not yet connected; core: the control chain;
     socket_path: where to serve the control socket (None = no socket, for in-process
-    tests); notifier: systemd notify (default: from the environment); sim: the link
-    to the simulated robot's own process (a :class:`~mmctl.runtime.sim_link.SimLink`:
-    ``start(should_stop)``, ``start_human()``, ``hold(seconds)``, ``status()``,
-    ``close()``), or None; telemetry: a
-    :class:`~mmctl.telemetry.service.TelemetryService` (its hook becomes
-    :attr:`sample_hook`, ``trial`` requests go to it), or None; loop_wait: the loop's
-    wait for each deadline (default: sleep, then spin; benchmarks give their own).
+    tests); notifier: systemd notify (default: from the environment); sim: the link to
+    the simulated robot's own process, already opened by whoever runs the daemon (a
+    :class:`~mmctl.runtime.sim_link.SimLink`: the daemon asks it for its status and
+    lets the person's hands go for a tare, never starts or stops it), or None;
+    telemetry: a :class:`~mmctl.telemetry.service.TelemetryService` (its hook becomes
+    the loop's sample hook, ``trial`` requests go to it), or None; loop_wait: the loop's
+    wait for each deadline (default: sleep, then spin; benchmarks give their own);
+    input_log: every cycle's readings, inbox and commands are written into it.
     """
 
     def __init__(self, cfg: Config, devices: Devices, core: ControlCore, *,
@@ -138,121 +137,117 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         self.cfg = cfg
         self.devices = devices
         self.core = core
-        #: the pure update (every per-cycle decision) and the state it hands on
-        self.update = Update(cfg, core.chain)
-        self.ustate: UpdateState = self.update.initial_state()
-        #: [commands] the most the update takes from the inbox in one cycle
-        self.inbox_size = 16
-        #: the arm's digital inputs a cycle reads: the enabling contacts, the button
-        self._inputs = tuple(cfg.enabling.inputs) + (
-            (cfg.daemon.switch_input,) if cfg.daemon.switch_input >= 0 else ())
-        #: every cycle's readings, inbox and commands (None: not recorded)
-        self.input_log = input_log
-        #: the update's state as the update left it this cycle (the runtime's own
-        #: changes after it go into the input log as patches)
-        self._updated: UpdateState = self.ustate
-        #: the last cycle's readings (None: no cycle yet)
-        self.readings: Readings | None = None
         self.notifier = notifier if notifier is not None else Notifier()
         self.sim = sim
         self.telemetry = telemetry
-        self.ring = TimingRing(cfg.loop.timing_samples)
-        #: time spent in the pure control chain (ControlCore.step) per cycle, indexed by
-        #: cycle % size [ns]: the part of the compute time that is not device I/O
-        self.step_ns = np.zeros(cfg.loop.timing_samples, np.int64)
-        #: time spent in the telemetry sample hook (write the cycle's row) per cycle,
-        #: indexed like ``step_ns`` [ns]; 0 when no hook ran: telemetry's own loop cost
-        self.hook_ns = np.zeros(cfg.loop.timing_samples, np.int64)
-        #: per device phase (:data:`PHASES`) and cycle, indexed like ``step_ns`` [ns]; 0
-        #: when the phase did not run: where the compute time goes (`mmctl bench loop`)
-        self.phase_ns = np.zeros((len(PHASES), cfg.loop.timing_samples), np.int64)
-        self.loop = CycleLoop(
-            self.cycle, rate_hz=cfg.loop.rate_hz, spin_margin=cfg.loop.spin_margin,
-            max_consecutive_misses=cfg.loop.max_consecutive_misses,
-            max_total_misses=cfg.loop.max_total_misses, ring=self.ring,
-            rt_priority=cfg.loop.rt_priority, cpu_affinity=cfg.loop.cpu_affinity,
-            wait=loop_wait,
-            gc_slack=GcInSlack(cfg.loop.gc_every, round(cfg.loop.gc_margin * 1e9),
-                               cfg.loop.rate_hz) if cfg.loop.gc_in_slack else None,
-        )
-        self.period = 1.0 / cfg.loop.rate_hz
+        self.input_log = input_log
+        self._stop_requested = threading.Event()
+        #: the loop thread's cycle and what it works on
+        self.runtime = LoopRuntime(cfg, devices, core, notifier=self.notifier,
+                                   stop_requested=self._stop_requested,
+                                   input_log=input_log, loop_wait=loop_wait)
+        #: `mmctl calibrate tool`'s requests and the routine's part of each cycle
+        self.calibrations = Calibrations(self.runtime)
+        #: the control socket's commands
+        self.operator = Operator(self.runtime, self.calibrations,
+                                 status=self.status_snapshot, request_stop=self.request_stop,
+                                 sim=sim, telemetry=telemetry)
+        rt = self.runtime
+        self.loop = rt.loop
+        self.ring, self.step_ns, self.hook_ns, self.phase_ns = (
+            rt.ring, rt.step_ns, rt.hook_ns, rt.phase_ns)
+        self.period = rt.period
         # status: a snapshot (inline, on the socket's selector thread); stop and disable
         # never queue behind other clients' requests (see mmctl.runtime.ipc)
-        self.server = (_control_server(cfg, socket_path, self.handle)
+        self.server = (_control_server(cfg, socket_path, self.operator.handle)
                        if socket_path is not None else None)
-        self._snapshot: tuple[float, tuple[Any, ...], dict[str, Any]] | None = None
+        self._snapshot: tuple[float, tuple[object, ...], dict[str, Any]] | None = None
         self._snapshot_lock = threading.RLock()  # (status() in it asks for loop_stats)
         self._loop_stats: tuple[float, dict[str, Any]] | None = None
-        self._commands: queue.SimpleQueue[tuple[Any, Future[Any]]] = queue.SimpleQueue()
-        self._stop_requested = threading.Event()
-        self._param_lock = threading.Lock()  # `mmctl set`: one change at a time
-        self._healthy_cycle = threading.Event()
         self.stop_reason = ""
-        self.sample_hook: SampleHook | None = None
-        self.cycles = 0
-        self.last: CycleResult | None = None
-        #: the cycle that produced :attr:`last`
-        self.last_cycle = 0
-        self._arm_busy = False
-        """An arm reconnect runs off the loop thread (set and cleared around it): the
-        loop then leaves the arm alone and counts it as disconnected."""
-        self._arm_reconnect = threading.Lock()
-        self._sensor_busy = False
-        """A sensor reconnect runs off the loop thread: the loop leaves the sensor alone."""
-        self._base_busy = False
-        """The base's enable runs off the loop thread (it waits for SDO answers and for
-        a wheel still ramping down): the loop then leaves the base alone."""
-        self._base_enable = threading.Lock()
-        """Held by an enable from its checks to its end: one enable at a time, and the
-        shutdown waits for it before it stops the devices."""
         self._started = time.monotonic()
-        self._t0_ns = 0
-        self._status_text = ""
-        self.commands_sent = {"speed_j": 0, "stop": 0, "twist": 0}
-        self._limiter = RateLimiter(1.0)
         self.cpu_latency = (CpuLatencyRequest(cfg.loop.cpu_dma_latency)
                             if cfg.loop.cpu_dma_latency >= 0 else None)
-        #: a request/reply sensor's "ask for the next sample" (CAN), sent at the end of
-        #: each cycle so the answer comes in the loop's idle time; None: it streams
-        self._sensor_request: Callable[[], None] | None = getattr(
-            devices.sensor, "request_next", None)
-        self._request_at_start = cfg.loop.sensor_request == "start"
-        #: a sensor in a process of its own: told the loop's grid in the first cycle
-        self._phase_sensor: Callable[[int, float], None] | None = getattr(
-            devices.sensor, "set_phase", None)
-        #: the newest tool-load calibration (`mmctl calibrate tool`) and its fit
-        self.calibration: ToolCalibration | None = None
-        self.calibration_fit: ToolLoadFit | None = None
-        self._planner: RobotModel | None = None
-        self._planner_lock = threading.Lock()
-        self._handlers = self._command_table()
 
+    # -- the parts' state, as tools and tests read it -------------------------------
     @property
     def safety(self) -> Safety:
         """The safety state machine's value as the last cycle left it."""
-        return self.ustate.safety
+        return self.runtime.safety
 
     @property
     def speed_scaling(self) -> float:
         """The arm's speed scaling in the last sample (speed slider x reduced mode)."""
-        return self.ustate.speed_scaling
+        return self.runtime.speed_scaling
+
+    @property
+    def ustate(self) -> UpdateState:
+        """The update's state as the last cycle left it."""
+        return self.runtime.ustate
+
+    @property
+    def cycles(self) -> int:
+        """Cycles run since the start."""
+        return self.runtime.cycles
+
+    @property
+    def last(self) -> CycleResult | None:
+        """The newest cycle's numbers (None: no device read yet)."""
+        return self.runtime.last
+
+    @property
+    def last_conditions(self) -> Mapping[FaultCause, Mapping[str, object]]:
+        """The conditions the newest update saw."""
+        return self.runtime.last_conditions
+
+    @property
+    def commands_sent(self) -> dict[str, int]:
+        """Commands sent to the devices since the start, by kind."""
+        return self.runtime.commands_sent
+
+    @property
+    def calibration(self) -> ToolCalibration | None:
+        """The newest tool-load calibration (running or ended), or None."""
+        return self.runtime.calibration
+
+    @property
+    def sample_hook(self) -> SampleHook | None:
+        """The loop's per-cycle telemetry hook (set it before the loop starts)."""
+        return self.runtime.sample_hook
+
+    @sample_hook.setter
+    def sample_hook(self, hook: SampleHook | None) -> None:
+        self.runtime.sample_hook = hook
+
+    def cycle(self, tick: Tick) -> None:
+        """One control period (:meth:`LoopRuntime.cycle`)."""
+        self.runtime.cycle(tick)
+
+    def step_once(self, overrun: bool = False) -> None:
+        """One cycle on the calling thread (tests and tools without the loop thread)."""
+        self.runtime.step_once(overrun)
+
+    def call(self, cmd: str, **args: Any) -> Any:
+        """Run one control command (same names as the socket's) and wait for its result."""
+        return self.operator.call(cmd, **args)
+
+    def handle(self, req: Mapping[str, Any], peer: Peer | None = None) -> Any:
+        """One control-socket request (:meth:`Operator.handle`)."""
+        return self.operator.handle(req, peer)
 
     # ------------------------------------------------------------------ lifecycle --
     def open(self) -> None:
-        """Claim the control socket, connect the devices (in that order)."""
+        """Claim the control socket, connect the devices (in that order).  The simulated
+        robot, if any, is already up: its owner (`mmctl run`) opened it first."""
         if self.server is not None:
             self.server.open()
         try:
-            if self.sim is not None:
-                self.sim.start(self._stop_requested.is_set)
-                if self._stop_requested.is_set():
-                    raise StartAborted("stopped while the simulated robot started")
+            if self._stop_requested.is_set():
+                raise StartAborted("stopped before the devices were connected")
             self.devices.connect()
         except BaseException:
             if self.server is not None:
                 self.server.close()
-            if self.sim is not None:
-                self.sim.close()
             raise
         self.notifier.connect()
 
@@ -263,10 +258,10 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
             self.cpu_latency.acquire()  # best effort: a warning when not permitted
         gc.collect()
         gc.freeze()  # start-up objects (models, fakes) out of every later collection
-        self._t0_ns = time.perf_counter_ns()
+        self.runtime.t0_ns = time.perf_counter_ns()
         if self.telemetry is not None:
             self.telemetry.start(ring=self.ring)
-            self.sample_hook = self.telemetry.hook(self.core)
+            self.runtime.sample_hook = self.telemetry.hook(self.core)
         self.loop.start()
         if self.server is not None:
             self.server.start()
@@ -274,22 +269,29 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
     @property
     def origin_ns(self) -> int:
         """perf_counter_ns of t = 0 (set by :meth:`start`); a sample's ``t`` counts from it."""
-        return self._t0_ns
+        return self.runtime.t0_ns
 
-    def run(self, duration: float | None = None, install_signals: bool = True) -> int:
+    @property
+    def stopping(self) -> bool:
+        """True once a stop was asked for (signal, ``mmctl stop``, :meth:`request_stop`)."""
+        return self._stop_requested.is_set()
+
+    def run(self, duration: float | None = None, install_signals: bool = True,
+            on_ready: Callable[[Daemon], None] | None = None) -> int:
         """open, start, wait for a stop (signal, ``mmctl stop``, duration), shut down.
 
-        Returns the process exit status (0 clean, 1 if the loop died of an error).
+        on_ready: called once the daemon is ready (on this thread, before the wait; `mmctl
+        run` arms the simulated robot with it).  Returns the process exit status (0
+        clean, 1 if the loop died of an error).
         """
         if install_signals:
-            self._install_signals()
+            self.install_signals()
         try:
             self.open()
             self.start()
             self._wait_ready()
-            if (self.cfg.sim.enabled and self.cfg.sim.auto_enable and self.sim is not None
-                    and not self._stop_requested.is_set()):
-                self._auto_enable()
+            if on_ready is not None and not self._stop_requested.is_set():
+                on_ready(self)
             deadline = None if duration is None else time.monotonic() + duration
             while not self._stop_requested.is_set():
                 if not self.loop.running:
@@ -315,24 +317,25 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         self._stop_requested.set()
 
     def shutdown(self) -> None:
-        """Stop the loop, send the stop commands, close devices, socket and sim (idempotent)."""
+        """Stop the loop, send the stop commands, close devices and socket (idempotent)."""
         self.notifier.stopping(f"stopping ({self.stop_reason or 'shutdown'})")
         log.info("daemon_stopping", reason=self.stop_reason or "shutdown")
         self.loop.stop()
         self.loop.wait(5.0)
         co = self.cfg.base.canopen
-        enable_done = self._base_enable.acquire(timeout=co.stop_timeout + 4 * co.sdo_timeout + 2)
+        enable_done = self.operator.base_enable.acquire(timeout=co.stop_timeout + 4 * co.sdo_timeout + 2)
         if not enable_done:
             log.error("base_enable_still_running", why="stopping the devices anyway")
         if self.devices.connected:
-            self.devices.stop(self.cfg.arm.stop_deceleration, arm=not self._arm_busy)
+            self.devices.stop(self.cfg.arm.stop_deceleration, arm=not self.runtime.arm_busy)
             self.commands_sent["stop"] += 1
             if self.safety.state is SafetyState.ARMED:  # (the loop has ended)
-                safety, _, events = sm.disable(self.safety)
-                self.ustate = self.ustate._replace(safety=safety)
-                log_events(events, self._limiter)
+                rt = self.runtime
+                safety, _, events = sm.disable(rt.safety)
+                rt.ustate = rt.ustate._replace(safety=safety)
+                log_events(events, self.runtime.limiter)
         if enable_done:
-            self._base_enable.release()
+            self.operator.base_enable.release()
         if self.server is not None:
             try:
                 self.server.close()
@@ -342,22 +345,20 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
             self.telemetry.close()
         if self.input_log is not None:
             self.input_log.close()
-        reconnect_done = self._arm_reconnect.acquire(timeout=3 * self.cfg.arm.connect_timeout + 2)
+        reconnect_done = self.operator.arm_reconnect.acquire(timeout=3 * self.cfg.arm.connect_timeout + 2)
         if not reconnect_done:  # never close the arm under a reconnect in progress
             log.error("arm_reconnect_still_running", why="the arm is not closed")
             self.devices.connected.clear()
         self.devices.close(arm=reconnect_done)
         if reconnect_done:
-            self._arm_reconnect.release()
-        if self.sim is not None:
-            self.sim.close()
+            self.operator.arm_reconnect.release()
         if self.cpu_latency is not None:
             self.cpu_latency.release()
         self.notifier.close()
         log.info("daemon_stopped", cycles=self.cycles, error=repr(self.loop.error)
                  if self.loop.error else None)
 
-    def _install_signals(self) -> None:
+    def install_signals(self) -> None:
         """Every signal whose default would end the process is a stop: the stop commands
         go out, then the devices close (:data:`STOP_SIGNALS`).  The handler only sets
         the stop request, so a second signal during the shutdown changes nothing."""
@@ -374,51 +375,17 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
             left = deadline - time.monotonic()
             if left <= 0:
                 break
-            healthy = self._healthy_cycle.wait(min(left, 0.05))  # a stop is seen at once
+            healthy = self.runtime.healthy_cycle.wait(min(left, 0.05))  # a stop is seen at once
             if healthy:
                 break
         if not healthy:
             log.warning("ready_without_healthy_cycle",
                         conditions=sorted(c.value for c in self.last_conditions))
-        self.notifier.ready(self._status())
+        self.notifier.ready(self.runtime.status_line())
         log.info("daemon_ready", state=self.safety.state.value, mode=self.core.mode,
                  socket=str(self.server.path) if self.server else None)
 
-    def _auto_enable(self) -> None:
-        """Simulation only: tare, arm, and let the simulated person start (within
-        sim.ready_timeout: a starved machine's tare takes its 100 samples slowly)."""
-        deadline = time.monotonic() + self.cfg.sim.ready_timeout
-        try:
-            self.call("tare")
-            while self.core.taring and time.monotonic() < deadline and self.loop.running:
-                time.sleep(0.01)
-            while True:  # a condition may flicker while the fakes settle: retry a while
-                try:
-                    self.call("enable")
-                    break
-                except MmctlError:
-                    if time.monotonic() > deadline or self._stop_requested.is_set():
-                        raise
-                    time.sleep(0.1)
-        except MmctlError as exc:
-            log.warning("auto_enable_failed", error=str(exc))
-            return
-        log.info("auto_enabled", mode=self.core.mode)
-        if self.cfg.sim.human and self.sim is not None:  # (else a push set meanwhile stays)
-            self.sim.start_human()
-
     # -------------------------------------------------------------------- status --
-    def _status(self) -> str:
-        s = self.safety
-        fault = f" fault={s.latched.value}" if s.latched else ""
-        return f"state={s.state.value} mode={self.core.mode}{fault}"
-
-    def _update_status(self) -> None:
-        text = self._status()
-        if text != self._status_text:
-            self._status_text = text
-            self.notifier.status(text)
-
     def status_snapshot(self) -> dict[str, Any]:
         """The control socket's ``status``: :meth:`status`, rebuilt at most every
         :data:`STATUS_MAX_AGE` however many clients ask, and at once when the safety
@@ -428,7 +395,7 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         s, core = self.safety, self.core
         calib = self.calibration
         key = (s.state, s.latched, len(s.active), core.mode, core.switch, core.taring,
-               self.enabling_state(), core.profile, len(core.changed), id(core.cfg),
+               self.runtime.enabling_state(), core.profile, len(core.changed), id(core.cfg),
                None if calib is None else (calib.phase, calib.index, calib.closed))
         with self._snapshot_lock:
             snap = self._snapshot
@@ -457,7 +424,7 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
             "mode": self.core.mode,
             "switch": self.core.switch,
             "taring": self.core.taring,
-            "enabling": self.enabling_state(),
+            "enabling": self.runtime.enabling_state(),
             "profile": self.core.profile,
             "caps": self.core.caps,
             "changed": dict(self.core.changed),
@@ -520,7 +487,7 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
         """The robot's motion as measured (end-effector and base speed, E_K from the
         measured velocities; zero at rest), or None where the newest cycle could not
         read a device (``measured_age_cycles`` says how old the numbers are)."""
-        age = self.cycles - self.last_cycle
+        age = self.cycles - self.runtime.last_cycle
         if age > MEASURED_MAX_AGE:
             return {"ee_speed_m_s": None, "base_speed_m_s": None, "base_yaw_rate": None,
                     "energy_J": None, "energy_arm_J": None, "energy_base_J": None,
@@ -533,20 +500,13 @@ class Daemon(OperatorCommands, CycleDriver, CalibrationCommands):
                 "energy_base_J": round(float(last.energy.base), 6),
                 "measured_age_cycles": age}
 
-    def enabling_state(self) -> str | None:
-        """The enabling switch as the last cycle read it: "held", "released",
-        "disagree" (its contacts differ), or None (no enabling switch configured)."""
-        if not self.cfg.enabling.inputs:
-            return None
-        return {True: "held", False: "released", None: "disagree"}[self.ustate.enabling.held]
-
     def live(self) -> dict[str, Any]:
         """The live terminal view's snapshot (:mod:`mmctl.runtime.liveview`; any thread,
         a few times a second: the last second of loop timing, the newest cycle)."""
         out: dict[str, Any] = {
             "state": self.safety.state.value, "mode": self.core.mode,
             "fault": self.safety.as_dict().get("fault"), "taring": self.core.taring,
-            "enabling": self.enabling_state(),
+            "enabling": self.runtime.enabling_state(),
             "cycles": self.cycles, "uptime_s": time.monotonic() - self._started,
             "loop": self._loop_block(self.loop_stats()),
         }

@@ -1,47 +1,67 @@
 """The cycle driver: one control period on the loop thread is read -> update -> write.
 
-- :meth:`CycleDriver._read` copies the devices' newest samples (timed per device,
+- :meth:`LoopRuntime._read` copies the devices' newest samples (timed per device,
   :data:`PHASES`) and the conditions their reads raised into
   :class:`~mmctl.control.update.Readings`;
 - :class:`~mmctl.control.update.Update` (pure) makes every per-cycle decision: the
   operator's commands taken from the inbox, the button, the arm hold, the enabling
   switch, the control chain, the safety latch, the commands;
-- :meth:`CycleDriver._write` sends the commands (a command that fails stops the robot at
+- :meth:`LoopRuntime._write` sends the commands (a command that fails stops the robot at
   once, and its condition reaches the next update), then the events are logged and the
   inbox's replies handed to the waiting callers.
 
-A part of :class:`~mmctl.runtime.daemon.Daemon`.
+:class:`LoopRuntime` owns what the loop thread works on: the update's state, the newest
+readings and result, the inbox, the timing rows.  The operator
+(:class:`~mmctl.runtime.operator.Operator`) and the tool-load calibration
+(:class:`~mmctl.runtime.calibrate.Calibrations`) hold it and reach the loop only through
+:meth:`LoopRuntime.on_loop` (a command into the inbox, its reply back);
+:class:`~mmctl.runtime.daemon.Daemon` composes the three with the lifecycle.
 """
 
 from __future__ import annotations
 
 import queue
+import threading
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import structlog
 
 from mmctl.control import safety as sm
-from mmctl.control.safety import ConditionsChanged, FaultRaised, StateChanged
+from mmctl.control.safety import ConditionsChanged, FaultRaised, Safety, StateChanged
 from mmctl.control.update import (
     BeginEnable,
     Changed,
     Command,
     Commands,
+    Disable,
     EnableCheck,
     EnableFinish,
     Install,
     Readings,
     Reply,
+    SetMode,
+    SetProfile,
+    SetSwitch,
     Switched,
+    Tare,
+    Update,
+    UpdateState,
 )
-from mmctl.errors import FaultCause, MmctlError, SafetyFault, TransportError
+from mmctl.errors import FaultCause, IpcError, MmctlError, SafetyFault, TransportError
+from mmctl.runtime.core import ControlCore, CycleResult
+from mmctl.runtime.devices import Devices
 from mmctl.runtime.inputlog import patch_between
-from mmctl.runtime.loop import Tick
+from mmctl.runtime.logging import RateLimiter
+from mmctl.runtime.loop import CycleLoop, GcInSlack, Tick, Wait
+from mmctl.runtime.notify import Notifier
 from mmctl.runtime.safety import log_events
+from mmctl.runtime.timing import TimingRing
+from mmctl.types import Wrench
 
 log = structlog.get_logger("mmctl.daemon")
 
@@ -55,11 +75,27 @@ _Z3 = np.zeros(3)
 SAFETY_EVENTS = (FaultRaised, StateChanged, ConditionsChanged)
 
 if TYPE_CHECKING:
-    from mmctl.runtime.parts import DaemonParts as _Parts
-else:
-    _Parts = object
+    from mmctl.config import Config
+    from mmctl.control.calibration import ToolCalibration
+    from mmctl.runtime.inputlog import InputLog
 
-Conditions = dict[FaultCause, Mapping[str, Any]]
+Conditions = dict[FaultCause, Mapping[str, object]]
+
+#: The hook telemetry attaches: called on the loop thread once per cycle as
+#: ``hook(result, cycle, t, safety)`` (the cycle's CycleResult, its index, its deadline
+#: since the origin [s], the safety state's name); must not block.
+SampleHook = Callable[[CycleResult, int, float, str], None]
+
+#: A running tool-load calibration's part of a cycle (:meth:`Calibrations.cycle
+#: <mmctl.runtime.calibrate.Calibrations.cycle>`): the routine, the controller's result,
+#: the sensor's sample, how many cycles the arm's pose has been repeated -> the result
+#: with the routine's command in place of the controller's.
+CalibrationCycle = Callable[["ToolCalibration", CycleResult | None, Wrench | None, int],
+                            CycleResult | None]
+
+#: The update's commands a caller may queue (anything else is a :class:`RunOnLoop`).
+COMMAND_TYPES = (BeginEnable, Disable, EnableCheck, EnableFinish, Install, SetMode,
+                 SetProfile, SetSwitch, Tare)
 
 
 class RunOnLoop(NamedTuple):
@@ -69,8 +105,161 @@ class RunOnLoop(NamedTuple):
     fn: Callable[[], Any]
 
 
-class CycleDriver(_Parts):
-    """The loop thread's cycle (see the module docstring)."""
+class LoopRuntime:
+    """The loop thread's cycle and what it works on (see the module docstring).
+
+    cfg: the configuration; devices: the device links (connected by the daemon); core:
+    the control chain; notifier: systemd notify (status line, watchdog); stop_requested:
+    set once the daemon is stopping (a command is then refused, never queued);
+    input_log: every cycle's readings, inbox and commands (None: not recorded);
+    loop_wait: the loop's wait for each deadline (default: sleep, then spin).
+    """
+
+    def __init__(self, cfg: Config, devices: Devices, core: ControlCore, *,
+                 notifier: Notifier, stop_requested: threading.Event,
+                 input_log: InputLog | None = None, loop_wait: Wait | None = None):
+        self.cfg = cfg
+        self.devices = devices
+        self.core = core
+        self.notifier = notifier
+        self.stop_requested = stop_requested
+        #: the pure update (every per-cycle decision) and the state it hands on
+        self.update = Update(cfg, core.chain)
+        self.ustate: UpdateState = self.update.initial_state()
+        #: [commands] the most the update takes from the inbox in one cycle
+        self.inbox_size = 16
+        #: the arm's digital inputs a cycle reads: the enabling contacts, the button
+        self._inputs = tuple(cfg.enabling.inputs) + (
+            (cfg.daemon.switch_input,) if cfg.daemon.switch_input >= 0 else ())
+        self.input_log = input_log
+        #: the update's state as the update left it this cycle (the runtime's own
+        #: changes after it go into the input log as patches)
+        self._updated: UpdateState = self.ustate
+        #: the last cycle's readings (None: no cycle yet)
+        self.readings: Readings | None = None
+        self.ring = TimingRing(cfg.loop.timing_samples)
+        #: time spent in the pure update per cycle, indexed by cycle % size [ns]: the
+        #: part of the compute time that is not device I/O
+        self.step_ns = np.zeros(cfg.loop.timing_samples, np.int64)
+        #: time spent in the telemetry sample hook (write the cycle's row) per cycle,
+        #: indexed like ``step_ns`` [ns]; 0 when no hook ran: telemetry's own loop cost
+        self.hook_ns = np.zeros(cfg.loop.timing_samples, np.int64)
+        #: per device phase (:data:`PHASES`) and cycle, indexed like ``step_ns`` [ns]; 0
+        #: when the phase did not run: where the compute time goes (`mmctl bench loop`)
+        self.phase_ns = np.zeros((len(PHASES), cfg.loop.timing_samples), np.int64)
+        self.loop = CycleLoop(
+            self.cycle, rate_hz=cfg.loop.rate_hz, spin_margin=cfg.loop.spin_margin,
+            max_consecutive_misses=cfg.loop.max_consecutive_misses,
+            max_total_misses=cfg.loop.max_total_misses, ring=self.ring,
+            rt_priority=cfg.loop.rt_priority, cpu_affinity=cfg.loop.cpu_affinity,
+            wait=loop_wait,
+            gc_slack=GcInSlack(cfg.loop.gc_every, round(cfg.loop.gc_margin * 1e9),
+                               cfg.loop.rate_hz) if cfg.loop.gc_in_slack else None,
+        )
+        self.period = 1.0 / cfg.loop.rate_hz
+        self._commands: queue.SimpleQueue[tuple[Command | RunOnLoop, Future[Any]]] = \
+            queue.SimpleQueue()
+        #: set by the first cycle that finds no condition (readiness)
+        self.healthy_cycle = threading.Event()
+        self.sample_hook: SampleHook | None = None
+        self.cycles = 0
+        self.last: CycleResult | None = None
+        #: the cycle that produced :attr:`last`
+        self.last_cycle = 0
+        #: a device whose link the operator's enable is reconnecting (the arm, the
+        #: sensor) or enabling (the base) off the loop thread: the loop leaves it alone
+        #: and counts it as not read.  Set by the loop (the update's reply to the
+        #: enable's step), cleared by the enable when its device work is done.
+        self.arm_busy = False
+        self.sensor_busy = False
+        self.base_busy = False
+        #: perf_counter_ns of t = 0 (set when the daemon starts the loop)
+        self.t0_ns = 0
+        self._status_text = ""
+        self.commands_sent = {"speed_j": 0, "stop": 0, "twist": 0}
+        self.limiter = RateLimiter(1.0)
+        #: a request/reply sensor's "ask for the next sample" (CAN), sent at the end of
+        #: each cycle so the answer comes in the loop's idle time; None: it streams
+        self._sensor_request: Callable[[], None] | None = getattr(
+            devices.sensor, "request_next", None)
+        self._request_at_start = cfg.loop.sensor_request == "start"
+        #: a sensor in a process of its own: told the loop's grid in the first cycle
+        self._phase_sensor: Callable[[int, float], None] | None = getattr(
+            devices.sensor, "set_phase", None)
+        #: the newest tool-load calibration (`mmctl calibrate tool`) and its part of
+        #: each cycle while it runs (set by :class:`~mmctl.runtime.calibrate.Calibrations`)
+        self.calibration: ToolCalibration | None = None
+        self.calibration_cycle: CalibrationCycle | None = None
+
+    @property
+    def safety(self) -> Safety:
+        """The safety state machine's value as the last cycle left it."""
+        return self.ustate.safety
+
+    @property
+    def speed_scaling(self) -> float:
+        """The arm's speed scaling in the last sample (speed slider x reduced mode)."""
+        return self.ustate.speed_scaling
+
+    def enabling_state(self) -> str | None:
+        """The enabling switch as the last cycle read it: "held", "released",
+        "disagree" (its contacts differ), or None (no enabling switch configured)."""
+        if not self.cfg.enabling.inputs:
+            return None
+        return {True: "held", False: "released", None: "disagree"}[self.ustate.enabling.held]
+
+    def status_line(self) -> str:
+        """The one-line status systemd shows (``state=... mode=... [fault=...]``)."""
+        s = self.safety
+        fault = f" fault={s.latched.value}" if s.latched else ""
+        return f"state={s.state.value} mode={self.core.mode}{fault}"
+
+    def update_status(self) -> None:
+        """Tell systemd the status line when it changed."""
+        text = self.status_line()
+        if text != self._status_text:
+            self._status_text = text
+            self.notifier.status(text)
+
+    # -- the inbox ----------------------------------------------------------------------
+    def submit(self, cmd: Command | RunOnLoop) -> Future[Any]:
+        """Queue ``cmd`` for the loop's next cycle (the update's inbox)."""
+        fut: Future[Any] = Future()
+        self._commands.put((cmd, fut))
+        return fut
+
+    def on_loop(self, cmd: Command | RunOnLoop | Callable[[], Any],
+                timeout: float | None = None) -> Any:
+        """Hand ``cmd`` to the loop's next cycle and wait for its reply (a plain function
+        is a :class:`RunOnLoop`); without a loop thread (tests stepping the daemon with
+        :meth:`step_once`) apply it right here.
+
+        A command the loop has not taken within ``timeout`` [s] (default
+        ``daemon.command_timeout``) is cancelled, so a command reported as failed never
+        takes effect later; one it has taken is waited for (it ends within its cycle).
+        """
+        if not isinstance(cmd, (RunOnLoop, *COMMAND_TYPES)):
+            cmd = RunOnLoop(cmd)
+        if not self.loop.running:
+            if self.loop.error is not None or self.stop_requested.is_set():
+                raise IpcError("the control loop is not running")
+            if isinstance(cmd, RunOnLoop):
+                return cmd.fn()
+            return self.apply_now(cmd)
+        fut = self.submit(cmd)
+        try:
+            try:
+                return fut.result(self.cfg.daemon.command_timeout if timeout is None else timeout)
+            except FutureTimeout:
+                if fut.cancel():
+                    raise IpcError("the control loop did not take the command in time "
+                                   "(not applied)") from None
+            return fut.result()  # started: ends within its cycle
+        finally:
+            # the future holds the command's exception, whose traceback holds this frame:
+            # without this, that cycle keeps the caller's frames (a control connection's
+            # socket among them) until a full garbage collection
+            del fut
 
     @property
     def last_conditions(self) -> Mapping[FaultCause, Mapping[str, Any]]:
@@ -96,14 +285,14 @@ class CycleDriver(_Parts):
             safety, stop, events = sm.observe(state.safety,
                                               {FaultCause.INTERNAL: {"error": repr(exc)}})
             self.ustate = state._replace(safety=safety)
-            log_events(events, self._limiter)
+            log_events(events, self.limiter)
             if stop:
-                self._send_stop()
-                self._update_status()
+                self.send_stop()
+                self.update_status()
             for _, fut in inbox:  # never left waiting
                 if not fut.done():
                     fut.set_exception(exc)
-            suppressed = self._limiter.allow("cycle_failed")
+            suppressed = self.limiter.allow("cycle_failed")
             if suppressed is not None:
                 log.exception("cycle_failed", error=repr(exc), suppressed=suppressed)
         if self.input_log is not None and self.ustate is not self._updated:
@@ -157,7 +346,7 @@ class CycleDriver(_Parts):
         t0 = clock()
         arm = None
         inputs = 0
-        if self._arm_busy:
+        if self.arm_busy:
             conditions[FaultCause.ARM_DISCONNECTED] = {"device": "arm", "why": "reconnecting"}
         else:
             arm = self._read_one("arm", dev.arm.read_state, conditions)
@@ -171,11 +360,11 @@ class CycleDriver(_Parts):
                                           {"device": "arm", "error": str(exc)})
                     arm = None
         t1 = clock()
-        odom = None if self._base_busy else self._read_one("base", dev.base.read_odometry,
+        odom = None if self.base_busy else self._read_one("base", dev.base.read_odometry,
                                                            conditions)
         t2 = clock()
         wrench = None
-        if self._sensor_busy:
+        if self.sensor_busy:
             conditions[FaultCause.SENSOR_LINK] = {"device": "sensor", "why": "reconnecting"}
         else:
             wrench = self._read_one("sensor", dev.sensor.read, conditions)
@@ -185,7 +374,7 @@ class CycleDriver(_Parts):
         self.readings = Readings(
             tick.index, self.core.clock(), tick.period, arm, wrench, odom, inputs, conditions,
             (tick.consecutive_misses, tick.total_misses) if tick.overrun else None,
-            tick.consecutive_misses, self._arm_busy, calib is not None and calib.running)
+            tick.consecutive_misses, self.arm_busy, calib is not None and calib.running)
         return self.readings
 
     # -- the cycle ----------------------------------------------------------------------
@@ -202,7 +391,7 @@ class CycleDriver(_Parts):
         state, commands, events = self.update(self.ustate, readings, taken)
         self.step_ns[self.cycles % self.step_ns.shape[0]] = time.perf_counter_ns() - t0
         if events:  # logged before the new state is seen: a fault seen has its event
-            log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self._limiter)
+            log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self.limiter)
         self.ustate = self._updated = state
         if self.input_log is not None:
             self.input_log.append(readings, taken, commands)
@@ -217,28 +406,31 @@ class CycleDriver(_Parts):
             if result is not None:
                 self.last, self.last_cycle = result, self.cycles
         if commands.stop:  # never delayed by telemetry
-            self._send_stop()
-            self._update_status()
+            self.send_stop()
+            self.update_status()
             commands = commands._replace(stop=False)
         # telemetry before the motion commands: their CAN frames wake the device threads,
         # which then want the GIL
         hook = self.sample_hook
         if hook is not None and result is not None:
             t0 = time.perf_counter_ns()
-            hook(result, tick.index, (tick.deadline_ns - self._t0_ns) * 1e-9,
+            hook(result, tick.index, (tick.deadline_ns - self.t0_ns) * 1e-9,
                  self.ustate.safety.state.value)
             self.hook_ns[self.cycles % self.hook_ns.shape[0]] = time.perf_counter_ns() - t0
         self._write(commands, row)
         self._after(events, inbox)
         if (not state.safety.active and self.devices.connected
-                and not self._healthy_cycle.is_set()):
-            self._healthy_cycle.set()  # once: Event.set takes a lock and notifies
+                and not self.healthy_cycle.is_set()):
+            self.healthy_cycle.set()  # once: Event.set takes a lock and notifies
         if not self._request_at_start:
             self._request_sensor(row)
 
-    def _calibration_commands(self, calib: Any, c: Commands, r: Readings) -> Commands:
+    def _calibration_commands(self, calib: ToolCalibration, c: Commands,
+                              r: Readings) -> Commands:
         """A tool-load calibration's cycle in place of the controller's motion."""
-        result = self._calibration_cycle(calib, c.result, r.wrench, self.ustate.arm_repeats)
+        if self.calibration_cycle is None:
+            return c
+        result = self.calibration_cycle(calib, c.result, r.wrench, self.ustate.arm_repeats)
         if c.stop or not self.ustate.safety.armed or result is None or c.result is None:
             return c._replace(result=result)
         twist = (0.0, 0.0, 0.0) if self.update._base_due(r.index, (0.0, 0.0, 0.0),
@@ -251,8 +443,8 @@ class CycleDriver(_Parts):
     def _write(self, c: Commands, row: int) -> None:
         clock = time.perf_counter_ns
         if c.stop:
-            self._send_stop()
-            self._update_status()
+            self.send_stop()
+            self.update_status()
         elif c.qd_arm is not None:
             t0 = clock()
             try:
@@ -286,9 +478,9 @@ class CycleDriver(_Parts):
         details = {"device": device,
                    **(exc.details if isinstance(exc, SafetyFault) else {"error": str(exc)})}
         safety, _, events = sm.trip(self.ustate.safety, cause, details)
-        log_events(events, self._limiter)
+        log_events(events, self.limiter)
         self.ustate = self.ustate._replace(safety=safety, twist_sent=None)
-        self._send_stop()
+        self.send_stop()
 
     def _kick_arm_watchdog(self) -> None:
         """A cycle without speedJ still feeds the controller's RTDE watchdog: only a
@@ -296,26 +488,26 @@ class CycleDriver(_Parts):
         try:
             self.devices.arm.kick_watchdog()
         except (SafetyFault, TransportError) as exc:  # the next read names the cause
-            suppressed = self._limiter.allow("arm_watchdog_kick_failed")
+            suppressed = self.limiter.allow("arm_watchdog_kick_failed")
             if suppressed is not None:
                 log.warning("arm_watchdog_kick_failed", error=str(exc), suppressed=suppressed)
 
-    def _send_stop(self) -> None:
+    def send_stop(self) -> None:
         """The stop commands, from the loop thread: never waits for the wheels to rest
         (each drive ramps down before its power stage goes off, 0x605B)."""
         self.devices.stop(self.cfg.arm.stop_deceleration, disable_base=True,
-                          arm=not self._arm_busy, wait=False)
+                          arm=not self.arm_busy, wait=False)
         self.commands_sent["stop"] += 1
 
     def _request_sensor(self, row: int) -> None:
         """Ask a request/reply sensor for its next sample (``loop.sensor_request``)."""
-        if self._sensor_request is None or self._sensor_busy:
+        if self._sensor_request is None or self.sensor_busy:
             return
         t0 = time.perf_counter_ns()
         try:
             self._sensor_request()
         except TransportError as exc:  # the next read finds no reply: stale, a fault
-            suppressed = self._limiter.allow("sensor_request_failed")
+            suppressed = self.limiter.allow("sensor_request_failed")
             if suppressed is not None:
                 log.warning("sensor_request_failed", error=str(exc), suppressed=suppressed)
         self.phase_ns[5, row] = time.perf_counter_ns() - t0
@@ -333,10 +525,10 @@ class CycleDriver(_Parts):
         # the rest as the last cycle saw it
         conditions: Conditions = {c: d for c, d in self.readings.conditions.items()
                                   if not c.value.startswith(("arm_", "sensor_"))}
-        arm = None if self._arm_busy else self._read_one("arm", self.devices.arm.read_state,
+        arm = None if self.arm_busy else self._read_one("arm", self.devices.arm.read_state,
                                                          conditions)
         wrench = None
-        if not self._sensor_busy:
+        if not self.sensor_busy:
             try:
                 wrench = self._read_one("sensor", self.devices.sensor.read, conditions)
             except Exception as exc:  # noqa: BLE001 -- as a cycle would: a condition
@@ -344,11 +536,11 @@ class CycleDriver(_Parts):
         readings = self.readings._replace(arm=arm, wrench=wrench, conditions=conditions,
                                           misses=self.loop.consecutive_misses)
         state, stop, events = self.update.apply(self.ustate, readings, [cmd])
-        log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self._limiter)
+        log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self.limiter)
         self.ustate = state
         self.core.cstate = state.chain
         if stop:
-            self._send_stop()
+            self.send_stop()
         self._after(events, [(cmd, fut)])
         try:
             return fut.result(0)
@@ -372,7 +564,7 @@ class CycleDriver(_Parts):
             elif isinstance(ev, (FaultRaised, StateChanged)):
                 status = True
         if status:
-            self._update_status()
+            self.update_status()
 
     def _log_changed(self, ev: Changed) -> None:
         if ev.what == "profile":
@@ -387,10 +579,10 @@ class CycleDriver(_Parts):
         if ev.error is None:
             match cmd:
                 case BeginEnable():  # the enable reconnects these links: leave them alone
-                    self._arm_busy = self._arm_busy or "arm" in ev.value
-                    self._sensor_busy = self._sensor_busy or "sensor" in ev.value
+                    self.arm_busy = self.arm_busy or "arm" in ev.value
+                    self.sensor_busy = self.sensor_busy or "sensor" in ev.value
                 case EnableCheck() if ev.value:
-                    self._base_busy = True  # the enable enables the base: leave it alone
+                    self.base_busy = True  # the enable enables the base: leave it alone
                 case EnableFinish() if ev.value == "armed":
                     self.loop.reset_misses()
                 case Install(cfg=cfg, controller=controller, key=key):

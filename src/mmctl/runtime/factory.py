@@ -1,16 +1,20 @@
-"""Build a :class:`~mmctl.runtime.daemon.Daemon` from a configuration.
+"""Build a :class:`~mmctl.runtime.daemon.Daemon` from a configuration, and open the
+simulated robot's process for it.
 
-The devices are the *real* transports either way.  With ``sim.enabled`` the daemon
-also gets a :class:`~mmctl.runtime.sim_link.SimLink`: it attaches to the simulated
-robot's own process (`mmctl sim`) or starts one.  Configurations whose CAN links are
-python-can's in-process ``virtual`` bus get none: whoever built them runs the fakes
-in the same process (tests that step the daemon cycle by cycle).
+The devices are the *real* transports either way.  The daemon never starts or stops
+the simulation: whoever runs it does (`mmctl run`, `mmctl bench loop`), with
+:func:`open_sim`, before the daemon connects, and closes it after the daemon stopped;
+the daemon only gets the link (for its status and the person's hands during a tare).
+Configurations whose CAN links are python-can's in-process ``virtual`` bus get no link:
+whoever built them runs the fakes in the same process (tests that step the daemon
+cycle by cycle).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from mmctl.config import Config
 from mmctl.runtime.core import ControlCore
@@ -20,33 +24,57 @@ from mmctl.runtime.inputlog import InputLog
 from mmctl.runtime.loop import Wait
 from mmctl.runtime.notify import Notifier
 
+if TYPE_CHECKING:
+    from mmctl.runtime.sim_link import SimLink
+    from mmctl.telemetry.service import TelemetryService
+
 
 def in_process_sim(cfg: Config) -> bool:
     """True when a CAN link of the simulated robot is the in-process ``virtual`` bus."""
     return any(link.interface == "virtual" for _key, link in cfg.can_links())
 
 
-def create_daemon(cfg: Config, socket_path: Path | None, *, sim_log: Path | None = None,
-                  notifier: Notifier | None = None, telemetry: Any = None,
-                  attach_sim: bool | None = None, loop_wait: Wait | None = None,
-                  input_log: InputLog | None = None) -> Daemon:
+def wants_sim_process(cfg: Config) -> bool:
+    """True when ``cfg`` drives the simulated robot in a process of its own."""
+    return cfg.sim.enabled and not in_process_sim(cfg)
+
+
+def open_sim(cfg: Config, log_dir: Path | None = None,
+             should_stop: Callable[[], bool] = lambda: False) -> SimLink | None:
+    """The simulated robot's process for ``cfg``, attached to or started (its fakes
+    listening: the daemon can connect), or None when ``cfg`` has none
+    (:func:`wants_sim_process`).  ``should_stop``: polled while it starts (a signal);
+    then the link is closed again and None returned.  log_dir: where a started
+    simulation writes its fakes' command logs when it stops.  Close it (``close()``)
+    after the daemon stopped."""
+    if not wants_sim_process(cfg):
+        return None
+    from mmctl.runtime.sim_link import SimLink
+
+    sim = SimLink(cfg, log_dir=log_dir)
+    try:
+        sim.start(should_stop)
+    except BaseException:
+        sim.close()
+        raise
+    if should_stop():
+        sim.close()
+        return None
+    return sim
+
+
+def create_daemon(cfg: Config, socket_path: Path | None, *, sim: SimLink | None = None,
+                  notifier: Notifier | None = None, telemetry: TelemetryService | None = None,
+                  loop_wait: Wait | None = None, input_log: InputLog | None = None) -> Daemon:
     """The daemon for ``cfg`` (nothing started or connected yet).
 
-    telemetry: a :class:`~mmctl.telemetry.service.TelemetryService`; default: one built
-    from ``cfg.telemetry`` (publishing nothing unless a destination is configured).
-    attach_sim: link to (or start) `mmctl sim`; default: ``sim.enabled`` unless the
-    CAN links are in-process (:func:`in_process_sim`).  loop_wait: the loop's wait
-    strategy (default: sleep, then spin; `mmctl bench loop` gives its own).  input_log:
-    an opened :class:`~mmctl.runtime.inputlog.InputLog` the loop writes every cycle into
-    (closed at the daemon's shutdown).
+    sim: the simulated robot's process, opened (:func:`open_sim`), or None.  telemetry:
+    a :class:`~mmctl.telemetry.service.TelemetryService`; default: one built from
+    ``cfg.telemetry`` (publishing nothing unless a destination is configured).
+    loop_wait: the loop's wait strategy (default: sleep, then spin; `mmctl bench loop`
+    gives its own).  input_log: an opened :class:`~mmctl.runtime.inputlog.InputLog` the
+    loop writes every cycle into (closed at the daemon's shutdown).
     """
-    if attach_sim is None:
-        attach_sim = cfg.sim.enabled and not in_process_sim(cfg)
-    sim = None
-    if attach_sim:
-        from mmctl.runtime.sim_link import SimLink
-
-        sim = SimLink(cfg, log_dir=sim_log)
     devices = open_devices(cfg)
     core = ControlCore(cfg)
     if telemetry is None:

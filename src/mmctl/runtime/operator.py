@@ -1,16 +1,18 @@
 """The operator's side of the daemon: the control socket's commands (a table of
-handlers), enable with its arm reconnect, disable, mode, switch, tare, and running a
-command on the loop thread (:meth:`OperatorCommands._on_loop`).  A part of
-:class:`~mmctl.runtime.daemon.Daemon`, which composes it with the lifecycle and the
-cycle driver (:mod:`mmctl.runtime.driver`)."""
+handlers), enable with its links' reconnects, disable, mode, switch, tare.  Every
+decision is the update's (a command into the loop's inbox through
+:meth:`LoopRuntime.on_loop <mmctl.runtime.driver.LoopRuntime.on_loop>`); what runs here,
+on the request's thread, is the device work an enable needs, which must never run on
+the loop thread.  :class:`~mmctl.runtime.daemon.Daemon` composes it with the lifecycle,
+the loop's runtime (:mod:`mmctl.runtime.driver`) and the tool-load calibration
+(:mod:`mmctl.runtime.calibrate`)."""
 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable, Mapping
-from concurrent.futures import Future
-from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING, Any
 
 import structlog
@@ -18,7 +20,6 @@ import structlog
 from mmctl.control.params import SETTABLE, get_value
 from mmctl.control.update import (
     BeginEnable,
-    Command,
     Disable,
     EnableCheck,
     EnableFinish,
@@ -28,72 +29,54 @@ from mmctl.control.update import (
     SetSwitch,
     Tare,
 )
-from mmctl.errors import IpcError, MmctlError, SafetyFault
-from mmctl.runtime.driver import RunOnLoop
+from mmctl.errors import MmctlError, SafetyFault
+from mmctl.runtime.calibrate import Calibrations
+from mmctl.runtime.driver import LoopRuntime, SampleHook
 from mmctl.runtime.ipc import Peer
 
 log = structlog.get_logger("mmctl.daemon")
 
-COMMAND_TYPES = (BeginEnable, Disable, EnableCheck, EnableFinish, Install, SetMode,
-                 SetProfile, SetSwitch, Tare)
 #: [s] the least an enable's last step (on the loop thread) is given to be taken.
 _FINISH_MIN = 0.5
 
 
 if TYPE_CHECKING:
-    from mmctl.runtime.daemon import SampleHook
-    from mmctl.runtime.parts import DaemonParts as _Parts
-else:
-    _Parts = object
+    from mmctl.runtime.sim_link import SimLink
+    from mmctl.telemetry.service import TelemetryService
 
 
-class OperatorCommands(_Parts):
-    """The operator's commands (see the module docstring)."""
+class Operator:
+    """The operator's commands (see the module docstring).
 
-    def submit(self, cmd: Command | RunOnLoop) -> Future[Any]:
-        """Queue ``cmd`` for the loop's next cycle (the update's inbox)."""
-        fut: Future[Any] = Future()
-        self._commands.put((cmd, fut))
-        return fut
+    runtime: the loop's; calibrations: the ``calibrate`` requests' handler; status: the
+    control socket's status snapshot (a command's reply); request_stop: ask the daemon
+    to shut down; sim: the simulated robot's link (the person lets go for a tare), or
+    None; telemetry: the telemetry service (``trial``), or None.
+    """
+
+    def __init__(self, runtime: LoopRuntime, calibrations: Calibrations, *,
+                 status: Callable[[], dict[str, Any]], request_stop: Callable[[str], None],
+                 sim: SimLink | None = None, telemetry: TelemetryService | None = None):
+        self.rt = runtime
+        self.cfg = runtime.cfg
+        self.calibrations = calibrations
+        self.status_snapshot = status
+        self.request_stop = request_stop
+        self.sim = sim
+        self.telemetry = telemetry
+        self._param_lock = threading.Lock()  # `mmctl set`: one change at a time
+        #: held by an arm reconnect (the daemon's shutdown never closes the arm under it)
+        self.arm_reconnect = threading.Lock()
+        #: held by an enable from its checks to its end: one enable at a time, and the
+        #: daemon's shutdown waits for it before it stops the devices
+        self.base_enable = threading.Lock()
+        self._handlers = self._command_table()
 
     def call(self, cmd: str, **args: Any) -> Any:
         """Run one control command (same names as the socket's) and wait for its result."""
         return self.handle({"cmd": cmd, **args}, None)
 
-    def _on_loop(self, cmd: Command | RunOnLoop | Callable[[], Any],
-                 timeout: float | None = None) -> Any:
-        """Hand ``cmd`` to the loop's next cycle and wait for its reply (a plain function
-        is a :class:`RunOnLoop`); without a loop thread (tests stepping the daemon with
-        :meth:`step_once`) queue it and run one cycle right here.
-
-        A command the loop has not taken within ``timeout`` [s] (default
-        ``daemon.command_timeout``) is cancelled, so a command reported as failed never
-        takes effect later; one it has taken is waited for (it ends within its cycle).
-        """
-        if not isinstance(cmd, (RunOnLoop, *COMMAND_TYPES)):
-            cmd = RunOnLoop(cmd)
-        if not self.loop.running:
-            if self.loop.error is not None or self._stop_requested.is_set():
-                raise IpcError("the control loop is not running")
-            if isinstance(cmd, RunOnLoop):
-                return cmd.fn()
-            return self.apply_now(cmd)
-        fut = self.submit(cmd)
-        try:
-            try:
-                return fut.result(self.cfg.daemon.command_timeout if timeout is None else timeout)
-            except FutureTimeout:
-                if fut.cancel():
-                    raise IpcError("the control loop did not take the command in time "
-                                   "(not applied)") from None
-            return fut.result()  # started: ends within its cycle
-        finally:
-            # the future holds the command's exception, whose traceback holds this frame:
-            # without this, that cycle keeps the caller's frames (a control connection's
-            # socket among them) until a full garbage collection
-            del fut
-
-    def handle(self, req: Mapping[str, Any], peer: Peer | None) -> Any:
+    def handle(self, req: Mapping[str, Any], peer: Peer | None = None) -> Any:
         """Dispatch one control-socket request (see :mod:`mmctl.runtime.ipc`)."""
         cmd = req["cmd"]
         handler = self._handlers.get(cmd)
@@ -107,15 +90,15 @@ class OperatorCommands(_Parts):
             "status": lambda req: self.status_snapshot(),
             "enable": lambda req: self._enable_request(
                 _budget(req, self.cfg.daemon.command_timeout)),
-            "disable": lambda req: self._then_status(self._on_loop(Disable())),
-            "mode": lambda req: self._then_status(self._on_loop(SetMode(_arg(req, "mode", str)))),
+            "disable": lambda req: self._then_status(self.rt.on_loop(Disable())),
+            "mode": lambda req: self._then_status(self.rt.on_loop(SetMode(_arg(req, "mode", str)))),
             "profile": lambda req: self._then_status(
-                self._on_loop(SetProfile(_arg(req, "profile", str)))),
-            "switch": lambda req: self._then_status(self._on_loop(SetSwitch(_arg(req, "to", str)))),
+                self.rt.on_loop(SetProfile(_arg(req, "profile", str)))),
+            "switch": lambda req: self._then_status(self.rt.on_loop(SetSwitch(_arg(req, "to", str)))),
             "tare": self._cmd_tare,
             "stop": self._cmd_stop,
             "trial": self._cmd_trial,
-            "calibrate": self._cmd_calibrate,
+            "calibrate": self.calibrations.command,
             "set": self._cmd_set,
             "get": self._cmd_get,
         }
@@ -128,21 +111,21 @@ class OperatorCommands(_Parts):
             raise MmctlError("'set' needs a 'value'")
         value = req["value"]
         with self._param_lock:  # one change at a time: none is lost to another
-            old = get_value(self.core.cfg, key)
-            cfg, controller = self.core.prepare(key, value)
-            self._on_loop(Install(cfg, controller, key))
+            old = get_value(self.rt.core.cfg, key)
+            cfg, controller = self.rt.core.prepare(key, value)
+            self.rt.on_loop(Install(cfg, controller, key))
         new = get_value(cfg, key)
         log.info("param_set", key=key, old=old, new=new)
         return {"key": key, "old": old, "value": new, "status": self.status_snapshot()}
 
     def _cmd_get(self, req: Mapping[str, Any]) -> Any:
         key = _arg(req, "key", str)
-        return {"key": key, "value": get_value(self.core.cfg, key),
-                "settable": key in SETTABLE, "changed": key in self.core.changed}
+        return {"key": key, "value": get_value(self.rt.core.cfg, key),
+                "settable": key in SETTABLE, "changed": key in self.rt.core.changed}
 
     def _cmd_tare(self, req: Mapping[str, Any]) -> Any:
         self._hands_off_for_tare()
-        return self._on_loop(Tare())
+        return self.rt.on_loop(Tare())
 
     def _cmd_stop(self, req: Mapping[str, Any]) -> Any:
         self.request_stop("mmctl stop")
@@ -151,16 +134,16 @@ class OperatorCommands(_Parts):
     def _cmd_trial(self, req: Mapping[str, Any]) -> Any:
         if self.telemetry is None:
             raise MmctlError("'trial' needs the telemetry service")
-        return self.telemetry.command(req, self._on_loop, self._install_hook, self.core)
+        return self.telemetry.command(req, self.rt.on_loop, self._install_hook, self.rt.core)
 
     def _install_hook(self, hook: SampleHook | None) -> None:
         """The loop's telemetry hook (loop thread: a trial started or stopped)."""
-        self.sample_hook = hook
+        self.rt.sample_hook = hook
 
     def _hands_off_for_tare(self) -> None:
         """Simulated robot: the person lets go of the handle while the sensor is tared
         (an operator does; the tare must not absorb a push)."""
-        if self.sim is None or self.ustate.safety.armed:
+        if self.sim is None or self.rt.ustate.safety.armed:
             return
         w = self.cfg.sensor.wrench
         seconds = 0.3 + 2.0 * w.tare_samples / self.cfg.loop.rate_hz
@@ -187,37 +170,37 @@ class OperatorCommands(_Parts):
         never takes effect later: a base enabled for an enable that then failed is
         disabled again."""
         deadline = time.monotonic() + budget
-        links = self._on_loop(BeginEnable(), budget)
+        links = self.rt.on_loop(BeginEnable(), budget)
         try:
             if "sensor" in links:
                 self._reconnect_sensor()
         finally:
-            self._sensor_busy = False
+            self.rt.sensor_busy = False
         if "arm" in links:
-            with self._arm_reconnect:
+            with self.arm_reconnect:
                 try:
                     self._reconnect_arm()
                 finally:
-                    self._arm_busy = False
-        with self._base_enable:
+                    self.rt.arm_busy = False
+        with self.base_enable:
             left = deadline - time.monotonic()
             if left <= 0:
                 raise MmctlError(f"refused to enable: the arm's reconnect took longer than "
                                  f"{budget:g} s (daemon.command_timeout or the client's "
                                  "timeout)")
-            if not self._on_loop(EnableCheck(), left):
+            if not self.rt.on_loop(EnableCheck(), left):
                 return self._then_status(None)  # armed already
             try:
                 failure, fault = self._enable_base()
             finally:
-                self._base_busy = False
+                self.rt.base_busy = False
             try:
                 # the drives' command watchdog runs from the enable: the loop arms (and
                 # sends targets) in its next cycle, whatever is left of the budget
-                self._on_loop(EnableFinish(failure, fault),
+                self.rt.on_loop(EnableFinish(failure, fault),
                               max(deadline - time.monotonic(), _FINISH_MIN))
             except BaseException:
-                if failure is None and not self.ustate.safety.armed:
+                if failure is None and not self.rt.ustate.safety.armed:
                     self._disable_base_after_failed_enable()
                 raise
         return self._then_status(None)
@@ -232,14 +215,14 @@ class OperatorCommands(_Parts):
         wrong and the cause the base names after it, for :class:`EnableFinish` to
         refuse with (the base disables itself again when its enable fails)."""
         try:
-            self.devices.base.reconnect()  # a lost link: connect again (else nothing)
-            self.devices.base.enable()
-            self.devices.base.check()
+            self.rt.devices.base.reconnect()  # a lost link: connect again (else nothing)
+            self.rt.devices.base.enable()
+            self.rt.devices.base.check()
         except (MmctlError, OSError) as exc:
             fault = exc if isinstance(exc, SafetyFault) else None
             if fault is None:
                 try:
-                    self.devices.base.check()  # name the cause if the base knows it
+                    self.rt.devices.base.check()  # name the cause if the base knows it
                 except SafetyFault as named:
                     fault = named
                 except (MmctlError, OSError):
@@ -250,7 +233,7 @@ class OperatorCommands(_Parts):
     def _disable_base_after_failed_enable(self) -> None:
         """The base was enabled for an enable that did not arm: switch it off again."""
         try:
-            self.devices.base.disable(wait=False)
+            self.rt.devices.base.disable(wait=False)
         except (MmctlError, OSError) as exc:
             log.warning("base_enable_undo_failed", error=str(exc))
 
@@ -259,7 +242,7 @@ class OperatorCommands(_Parts):
         the sensor alone): connect again (the transport re-reads its calibration)."""
         log.info("sensor_reconnecting")
         try:
-            self.devices.sensor.reconnect()
+            self.rt.devices.sensor.reconnect()
         except (MmctlError, OSError) as exc:
             log.warning("sensor_reconnect_failed", error=str(exc))
             raise MmctlError(f"refused to enable: the sensor did not reconnect ({exc})") from None
@@ -270,9 +253,9 @@ class OperatorCommands(_Parts):
         leaving the arm alone): reconnect, which re-uploads the control script (~1-2 s;
         ur_rtde's constructors and destructors hold the GIL for parts of it)."""
         log.info("arm_reconnecting", causes=sorted(
-            c.value for c in self.ustate.safety.active if c.value.startswith("arm_")))
+            c.value for c in self.rt.ustate.safety.active if c.value.startswith("arm_")))
         try:
-            self.devices.arm.reconnect()
+            self.rt.devices.arm.reconnect()
         except (MmctlError, OSError) as exc:
             log.warning("arm_reconnect_failed", error=str(exc))
             raise MmctlError(f"refused to enable: the arm did not reconnect ({exc})") from None
