@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import structlog
@@ -41,7 +41,7 @@ from mmctl.errors import MmctlError
 from mmctl.runtime.core import CycleResult
 from mmctl.runtime.driver import LoopRuntime
 from mmctl.runtime.safety import log_events
-from mmctl.types import Wrench
+from mmctl.types import Vec, Wrench
 
 log = structlog.get_logger("mmctl.daemon")
 
@@ -75,7 +75,7 @@ class Calibrations:
         """The newest calibration (running or ended), or None."""
         return self.rt.calibration
 
-    def command(self, req: Mapping[str, Any]) -> Any:
+    def command(self, req: Mapping[str, object]) -> object:
         action = req.get("action", "status")
         if action == "start":
             return self._request(req.get("poses"))
@@ -85,7 +85,7 @@ class Calibrations:
             return self.rt.on_loop(self._abort)
         raise MmctlError(f"calibrate: action {action!r}: must be 'start', 'status' or 'abort'")
 
-    def _request(self, poses: Any) -> dict[str, Any]:
+    def _request(self, poses: object) -> dict[str, object]:
         """Plan on this thread from the newest sample, then start on the loop."""
         cal = self.cfg.sensor.calibration
         n = cal.poses if poses is None else poses
@@ -107,7 +107,7 @@ class Calibrations:
             plan = plan_poses(self._planner, q[:6], n, cal, self.cfg.limits,
                               self.cfg.safety.max_condition, float(caps["ee_speed_m_s"] or 0.25),
                               self.cfg.walls.ee_box)
-        started: dict[str, Any] = self.rt.on_loop(lambda: self._begin(plan, q))
+        started: dict[str, object] = self.rt.on_loop(lambda: self._begin(plan, q))
         return started
 
     def _precheck(self, last: CycleResult) -> None:
@@ -140,7 +140,7 @@ class Calibrations:
             raise MmctlError(f"refused to calibrate: {force:.1f} N on the handle (more than "
                              f"sensor.calibration.abort_force {limit:g} N): hands off")
 
-    def _begin(self, plan: Plan, q_planned: Any) -> dict[str, Any]:
+    def _begin(self, plan: Plan, q_planned: Vec) -> dict[str, object]:
         """Loop thread: check again and install the routine."""
         last = self.rt.last
         if last is None:
@@ -161,7 +161,7 @@ class Calibrations:
         return {"started": True, "poses": len(plan.poses), "estimated_s": round(seconds, 1),
                 "plan": [[round(float(x), 5) for x in p] for p in plan.poses]}
 
-    def _abort(self) -> dict[str, Any]:
+    def _abort(self) -> dict[str, object]:
         """Loop thread: the operator's abort: stop the robot (disarmed)."""
         c = self.rt.calibration
         if c is not None and c.running:
@@ -181,7 +181,7 @@ class Calibrations:
                     weighed=len(c.samples))
         self.rt.update_status()
 
-    def report(self) -> dict[str, Any]:
+    def report(self) -> dict[str, object]:
         """Progress of the last calibration; once done, its fit and what it weighed."""
         c = self.rt.calibration
         if c is None:

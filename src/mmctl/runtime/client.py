@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from mmctl.config import Config, load_config, sim_profile
-from mmctl.runtime.ipc import request, resolve_socket_path
+from mmctl.runtime.ipc import ControlClient, resolve_socket_path
 
 #: Where the systemd service puts its socket (RuntimeDirectory=mmctl).
 SERVICE_SOCKET = Path("/run/mmctl/mmctl.sock")
@@ -50,12 +50,13 @@ def socket_for(args: argparse.Namespace) -> Path:
     return path
 
 
-def call(args: argparse.Namespace, cmd: str, **params: Any) -> Any:
+def call(args: argparse.Namespace, cmd: str, **params: object) -> Any:
     """One request to the daemon; IpcError (one line) when there is none or it refuses."""
-    return request(socket_for(args), cmd, timeout=getattr(args, "timeout", 10.0), **params)
+    with ControlClient(socket_for(args), getattr(args, "timeout", 10.0)) as client:
+        return client.call(cmd, **params)
 
 
-def summary(st: dict[str, Any]) -> str:
+def summary(st: dict[str, object]) -> str:
     """One line: state, mode, fault."""
     mode = st.get("mode", "?")
     if mode == "switch" and st.get("switch"):
@@ -67,6 +68,7 @@ def summary(st: dict[str, Any]) -> str:
         line += f" enabling={st['enabling']}"
     if st.get("fault"):
         line += f" fault={st['fault']}"
-    if st.get("conditions"):
-        line += f" conditions={','.join(st['conditions'])}"
+    conditions = st.get("conditions")
+    if isinstance(conditions, list) and conditions:
+        line += f" conditions={','.join(map(str, conditions))}"
     return line

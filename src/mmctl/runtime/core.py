@@ -8,9 +8,9 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from mmctl.config import Config
 from mmctl.control.cycle import CycleChain, CycleResult, CycleState, Readings
@@ -44,7 +44,7 @@ class ControlCore:
         self.wrench = self.chain.wrench
         self.cstate: CycleState = self.chain.initial_state()
         #: the parameters changed at run time (`mmctl set`): key -> value now
-        self.changed: dict[str, Any] = {}
+        self.changed: dict[str, object] = {}
 
     @property
     def state(self) -> ControllerState:
@@ -86,7 +86,7 @@ class ControlCore:
         self.cstate = self.cstate._replace(
             controller=self.controller.set_profile(self.state, profile))
 
-    def prepare(self, key: str, value: Any) -> tuple[Config, Controller]:
+    def prepare(self, key: str, value: object) -> tuple[Config, Controller]:
         """A run-time parameter change, the slow half (any thread): the configuration
         with ``key`` set (validated: ConfigError) and a controller built from it on a
         model of its own (the loop's model is the loop thread's scratch space)."""
@@ -152,7 +152,7 @@ class ControlCore:
 
     # -- telemetry ----------------------------------------------------------------------
     def fill_row(self, r: CycleResult, cycle: int, t: float, safety: str,
-                 prev: tuple[float, ...], row: Any) -> None:
+                 prev: tuple[float, ...], row: NDArray[np.float64]) -> None:
         """Write this cycle and the previous cycle's timing ``prev`` (latency, compute,
         slack, missed [ns]) into a telemetry row (:mod:`mmctl.telemetry.ring` layout) in
         place: the loop's telemetry hot path, one numpy call.

@@ -41,10 +41,12 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import FrameType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import structlog
+from numpy.typing import ArrayLike
 
 from mmctl.config import Config
 from mmctl.control import safety as sm
@@ -100,7 +102,6 @@ def _control_server(cfg: Config, path: Path, handler: Handler) -> ProcessControl
     hands the daemon only complete, rate-limited requests): ``status`` from the snapshot
     (inline), ``stop`` and ``disable`` never queued behind other clients' requests (see
     :mod:`mmctl.runtime.ipc`)."""
-    kw: dict[str, Any] = {"inline": ("status",), "urgent": ("stop", "disable")}
     from mmctl.runtime import logging as mmctl_logging
 
     cpus: tuple[int, ...] = ()
@@ -108,7 +109,8 @@ def _control_server(cfg: Config, path: Path, handler: Handler) -> ProcessControl
     if loop_cpus and hasattr(os, "sched_getaffinity"):
         cpus = tuple(sorted(os.sched_getaffinity(0) - loop_cpus))  # off the loop's CPUs
     return ProcessControlServer(path, handler, cfg.daemon.socket_mode,
-                                log_setup=mmctl_logging.CURRENT, cpus=cpus, **kw)
+                                log_setup=mmctl_logging.CURRENT, cpus=cpus,
+                                inline=("status",), urgent=("stop", "disable"))
 
 
 class StartAborted(Exception):
@@ -161,9 +163,9 @@ class Daemon:
         # never queue behind other clients' requests (see mmctl.runtime.ipc)
         self.server = (_control_server(cfg, socket_path, self.operator.handle)
                        if socket_path is not None else None)
-        self._snapshot: tuple[float, tuple[object, ...], dict[str, Any]] | None = None
+        self._snapshot: tuple[float, tuple[object, ...], dict[str, object]] | None = None
         self._snapshot_lock = threading.RLock()  # (status() in it asks for loop_stats)
-        self._loop_stats: tuple[float, dict[str, Any]] | None = None
+        self._loop_stats: tuple[float, dict[str, float | int]] | None = None
         self.stop_reason = ""
         self._started = time.monotonic()
         self.cpu_latency = (CpuLatencyRequest(cfg.loop.cpu_dma_latency)
@@ -227,11 +229,11 @@ class Daemon:
         """One cycle on the calling thread (tests and tools without the loop thread)."""
         self.runtime.step_once(overrun)
 
-    def call(self, cmd: str, **args: Any) -> Any:
+    def call(self, cmd: str, **args: object) -> Any:
         """Run one control command (same names as the socket's) and wait for its result."""
         return self.operator.call(cmd, **args)
 
-    def handle(self, req: Mapping[str, Any], peer: Peer | None = None) -> Any:
+    def handle(self, req: Mapping[str, object], peer: Peer | None = None) -> object:
         """One control-socket request (:meth:`Operator.handle`)."""
         return self.operator.handle(req, peer)
 
@@ -362,7 +364,7 @@ class Daemon:
         """Every signal whose default would end the process is a stop: the stop commands
         go out, then the devices close (:data:`STOP_SIGNALS`).  The handler only sets
         the stop request, so a second signal during the shutdown changes nothing."""
-        def on_signal(signum: int, _frame: Any) -> None:
+        def on_signal(signum: int, _frame: FrameType | None) -> None:
             self.request_stop(signal.Signals(signum).name)
 
         for signum in STOP_SIGNALS:
@@ -386,7 +388,7 @@ class Daemon:
                  socket=str(self.server.path) if self.server else None)
 
     # -------------------------------------------------------------------- status --
-    def status_snapshot(self) -> dict[str, Any]:
+    def status_snapshot(self) -> dict[str, object]:
         """The control socket's ``status``: :meth:`status`, rebuilt at most every
         :data:`STATUS_MAX_AGE` however many clients ask, and at once when the safety
         state, the fault, the conditions' count, the mode or the tare changed (so a
@@ -404,7 +406,7 @@ class Daemon:
                 snap = self._snapshot = (now, key, self.status())
         return snap[2]
 
-    def loop_stats(self) -> dict[str, Any]:
+    def loop_stats(self) -> dict[str, float | int]:
         """The loop's timing over the last 5 s, recomputed at most every
         :data:`STATS_MAX_AGE` (percentiles over 2 500 cycles: about a millisecond of the
         interpreter the loop shares, the largest part of a status by far)."""
@@ -417,9 +419,9 @@ class Daemon:
                 cached = self._loop_stats = (now, stats.as_dict())
         return cached[1]
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> dict[str, object]:
         """Plain-JSON snapshot for ``mmctl status`` (any thread)."""
-        out: dict[str, Any] = {
+        out: dict[str, object] = {
             **self.safety.as_dict(),
             "mode": self.core.mode,
             "switch": self.core.switch,
@@ -450,7 +452,7 @@ class Daemon:
             out["sim"] = self.sim.status()
         if self.telemetry is not None:
             out["telemetry"] = self.telemetry.status()
-        out["process"] = {
+        process: dict[str, object] = {
             "pid": os.getpid(), "threads": sorted(t.name for t in threading.enumerate()),
             # on the robot and on the simulated robot alike: no simulation code in here
             "simulation_loaded": any(m in sys.modules for m in ("mmctl.sim", "mmctl.study")),
@@ -460,12 +462,14 @@ class Daemon:
         }
         if isinstance(self.server, ProcessControlServer):
             # the control socket's own process (None between a crash and its restart)
-            out["process"]["socket_process"] = {"pid": self.server.pid,
-                                                "starts": self.server.started}
+            process["socket_process"] = {"pid": self.server.pid,
+                                         "starts": self.server.started}
+        out["process"] = process
         return out
 
 
-    def _loop_block(self, stats: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    def _loop_block(self, stats: Mapping[str, float | int], **extra: object
+                    ) -> dict[str, object]:
         """The loop's figures as status and the live view show them: timing over the
         last :data:`STATS_WINDOW` s, and misses with one definition (deadlines missed /
         (cycles run + deadlines missed)), over that window and since the start."""
@@ -483,7 +487,7 @@ class Daemon:
                     "collections": list(loop.gc_slack.collections),
                     "worst_us": round(loop.gc_slack.worst_ns / 1e3, 1)}})}
 
-    def _measured(self, last: CycleResult) -> dict[str, Any]:
+    def _measured(self, last: CycleResult) -> dict[str, object]:
         """The robot's motion as measured (end-effector and base speed, E_K from the
         measured velocities; zero at rest), or None where the newest cycle could not
         read a device (``measured_age_cycles`` says how old the numbers are)."""
@@ -500,10 +504,10 @@ class Daemon:
                 "energy_base_J": round(float(last.energy.base), 6),
                 "measured_age_cycles": age}
 
-    def live(self) -> dict[str, Any]:
+    def live(self) -> dict[str, object]:
         """The live terminal view's snapshot (:mod:`mmctl.runtime.liveview`; any thread,
         a few times a second: the last second of loop timing, the newest cycle)."""
-        out: dict[str, Any] = {
+        out: dict[str, object] = {
             "state": self.safety.state.value, "mode": self.core.mode,
             "fault": self.safety.as_dict().get("fault"), "taring": self.core.taring,
             "enabling": self.runtime.enabling_state(),
@@ -533,6 +537,6 @@ class Daemon:
         return out
 
 
-def _round(v: Any, nd: int = 5) -> list[float]:
+def _round(v: ArrayLike, nd: int = 5) -> list[float]:
     return [round(float(x), nd) if math.isfinite(float(x)) else float("nan")
             for x in np.asarray(v).ravel()]

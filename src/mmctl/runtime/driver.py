@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, TypeVar, overload
 
 import numpy as np
 import structlog
@@ -80,6 +80,7 @@ if TYPE_CHECKING:
     from mmctl.runtime.inputlog import InputLog
 
 Conditions = dict[FaultCause, Mapping[str, object]]
+T = TypeVar("T")
 
 #: The hook telemetry attaches: called on the loop thread once per cycle as
 #: ``hook(result, cycle, t, safety)`` (the cycle's CycleResult, its index, its deadline
@@ -102,7 +103,7 @@ class RunOnLoop(NamedTuple):
     """A runtime-side operation run on the loop thread before the update (a trial's
     telemetry hook, a tool-load calibration's start or abort): not a control decision."""
 
-    fn: Callable[[], Any]
+    fn: Callable[[], object]
 
 
 class LoopRuntime:
@@ -157,7 +158,7 @@ class LoopRuntime:
                                cfg.loop.rate_hz) if cfg.loop.gc_in_slack else None,
         )
         self.period = 1.0 / cfg.loop.rate_hz
-        self._commands: queue.SimpleQueue[tuple[Command | RunOnLoop, Future[Any]]] = \
+        self._commands: queue.SimpleQueue[tuple[Command | RunOnLoop, Future[object]]] = \
             queue.SimpleQueue()
         #: set by the first cycle that finds no condition (readiness)
         self.healthy_cycle = threading.Event()
@@ -222,14 +223,20 @@ class LoopRuntime:
             self.notifier.status(text)
 
     # -- the inbox ----------------------------------------------------------------------
-    def submit(self, cmd: Command | RunOnLoop) -> Future[Any]:
+    def submit(self, cmd: Command | RunOnLoop) -> Future[object]:
         """Queue ``cmd`` for the loop's next cycle (the update's inbox)."""
-        fut: Future[Any] = Future()
+        fut: Future[object] = Future()
         self._commands.put((cmd, fut))
         return fut
 
-    def on_loop(self, cmd: Command | RunOnLoop | Callable[[], Any],
-                timeout: float | None = None) -> Any:
+    @overload
+    def on_loop(self, cmd: Command | RunOnLoop, timeout: float | None = None) -> object: ...
+
+    @overload
+    def on_loop(self, cmd: Callable[[], T], timeout: float | None = None) -> T: ...
+
+    def on_loop(self, cmd: Command | RunOnLoop | Callable[[], object],
+                timeout: float | None = None) -> object:
         """Hand ``cmd`` to the loop's next cycle and wait for its reply (a plain function
         is a :class:`RunOnLoop`); without a loop thread (tests stepping the daemon with
         :meth:`step_once`) apply it right here.
@@ -262,7 +269,7 @@ class LoopRuntime:
             del fut
 
     @property
-    def last_conditions(self) -> Mapping[FaultCause, Mapping[str, Any]]:
+    def last_conditions(self) -> Mapping[FaultCause, Mapping[str, object]]:
         """The conditions the newest update saw (a read-only view of its safety state)."""
         return self.ustate.safety.active
 
@@ -274,7 +281,7 @@ class LoopRuntime:
 
     def cycle(self, tick: Tick) -> None:
         """One control period (loop thread)."""
-        inbox: list[tuple[Command, Future[Any]]] = []
+        inbox: list[tuple[Command, Future[object]]] = []
         self._updated = self.ustate
         try:
             inbox = self._take_inbox()
@@ -303,11 +310,11 @@ class LoopRuntime:
         if self.notifier.watchdog_interval is not None:
             self.notifier.watchdog_tick(tick.wake_ns)
 
-    def _take_inbox(self) -> list[tuple[Command, Future[Any]]]:
+    def _take_inbox(self) -> list[tuple[Command, Future[object]]]:
         """The update's commands queued since the last cycle (at most ``inbox_size``);
         the runtime's own (:class:`RunOnLoop`: a trial's hook, a calibration's start or
         abort) run here, first."""
-        out: list[tuple[Command, Future[Any]]] = []
+        out: list[tuple[Command, Future[object]]] = []
         while len(out) < self.inbox_size:
             try:
                 cmd, fut = self._commands.get_nowait()
@@ -327,7 +334,7 @@ class LoopRuntime:
         return out
 
     # -- read ---------------------------------------------------------------------------
-    def _read_one(self, name: str, fn: Any, conditions: Conditions) -> Any:
+    def _read_one(self, name: str, fn: Callable[[], T], conditions: Conditions) -> T | None:
         try:
             return fn()
         except SafetyFault as exc:
@@ -378,7 +385,7 @@ class LoopRuntime:
         return self.readings
 
     # -- the cycle ----------------------------------------------------------------------
-    def _cycle(self, tick: Tick, inbox: list[tuple[Command, Future[Any]]]) -> None:
+    def _cycle(self, tick: Tick, inbox: list[tuple[Command, Future[object]]]) -> None:
         row = self.cycles % self.phase_ns.shape[1]
         phase = self.phase_ns
         phase[3, row] = phase[4, row] = phase[5, row] = 0
@@ -512,14 +519,14 @@ class LoopRuntime:
                 log.warning("sensor_request_failed", error=str(exc), suppressed=suppressed)
         self.phase_ns[5, row] = time.perf_counter_ns() - t0
 
-    def apply_now(self, cmd: Command) -> Any:
+    def apply_now(self, cmd: Command) -> object:
         """Without a loop thread (tests and tools stepping the daemon by hand): the
         update takes ``cmd`` at once (no control step), judged on a fresh arm sample and
         the last cycle's other readings, and the stop goes out when it says so; returns the reply (or raises
         its error)."""
         if self.readings is None:
             raise MmctlError("refused: no control cycle has run yet")
-        fut: Future[Any] = Future()
+        fut: Future[object] = Future()
         fut.set_running_or_notify_cancel()
         # the arm and the sensor read again (a reconnect may have just brought them back),
         # the rest as the last cycle saw it
@@ -548,7 +555,7 @@ class LoopRuntime:
             del fut
 
     # -- after the write: events and replies --------------------------------------------
-    def _after(self, events: tuple[Any, ...], inbox: list[tuple[Command, Future[Any]]]) -> None:
+    def _after(self, events: tuple[object, ...], inbox: list[tuple[Command, Future[object]]]) -> None:
         if not events:
             return
         status = False
@@ -572,7 +579,7 @@ class LoopRuntime:
         else:
             log.info(ev.what, old=ev.old, new=ev.new)
 
-    def _reply(self, item: tuple[Command, Future[Any]], ev: Reply) -> None:
+    def _reply(self, item: tuple[Command, Future[object]], ev: Reply) -> None:
         """Hand one command's answer to its caller, after the runtime's part of it (on
         the loop thread, so the loop's next read already sees it)."""
         cmd, fut = item

@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import queue
 import threading
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -77,6 +77,10 @@ for _name, _n in FIELDS:
     _i += _n
 BLOCK = 500  # rows per block handed to the writer (1 s at 500 Hz)
 F64 = NDArray[np.float64]
+#: One JSON object of the log's side file (a command, a state patch, an exception) as
+#: this module writes it and reads it back: its schema is this module's own, so its
+#: values are taken as written (a log that does not parse is a LogError).
+Record = dict[str, Any]
 
 
 class LogError(MmctlError):
@@ -85,17 +89,17 @@ class LogError(MmctlError):
 
 # -- commands and state patches as JSON ---------------------------------------------------
 
-def _exc(e: BaseException | None) -> dict[str, Any] | None:
+def _exc(e: BaseException | None) -> Record | None:
     if e is None:
         return None
-    out: dict[str, Any] = {"type": type(e).__name__, "message": str(e)}
+    out: Record = {"type": type(e).__name__, "message": str(e)}
     if isinstance(e, SafetyFault):
         out["cause"] = e.cause.value
         out["details"] = {k: plain(v) for k, v in e.details.items()}
     return out
 
 
-def _unexc(d: Mapping[str, Any] | None) -> BaseException | None:
+def _unexc(d: Record | None) -> BaseException | None:
     if d is None:
         return None
     if d.get("cause") is not None:
@@ -103,7 +107,7 @@ def _unexc(d: Mapping[str, Any] | None) -> BaseException | None:
     return MmctlError(str(d.get("message", "")))
 
 
-def encode_command(cmd: Command) -> dict[str, Any]:
+def encode_command(cmd: Command) -> Record:
     """A plain-JSON form of one inbox command (``Install``: its key and value)."""
     match cmd:
         case EnableFinish(failure=failure, fault=fault):
@@ -116,11 +120,11 @@ def encode_command(cmd: Command) -> dict[str, Any]:
             return {"t": type(cmd).__name__, **{k: plain(v) for k, v in cmd._asdict().items()}}
 
 
-def decode_command(d: Mapping[str, Any], cfg: Config) -> tuple[Command, Config]:
+def decode_command(d: Record, cfg: Config) -> tuple[Command, Config]:
     """The command back (an ``Install`` rebuilt from ``cfg`` with its key set); returns
     it with the configuration in force after it."""
     t = d["t"]
-    simple: dict[str, Any] = {"Disable": Disable, "Tare": Tare, "BeginEnable": BeginEnable,
+    simple: Record = {"Disable": Disable, "Tare": Tare, "BeginEnable": BeginEnable,
                               "EnableCheck": EnableCheck}
     if t in simple:
         return simple[t](), cfg
@@ -144,32 +148,32 @@ def decode_command(d: Mapping[str, Any], cfg: Config) -> tuple[Command, Config]:
     raise LogError(f"unknown command {t!r} in the log")
 
 
-def _encode_safety(s: Safety) -> dict[str, Any]:
+def _encode_safety(s: Safety) -> Record:
     return {"state": s.state.value, "latched": s.latched.value if s.latched else None,
             "latched_details": {k: plain(v) for k, v in s.latched_details.items()},
             "active": _encode_conditions(s.active), "faults": s.faults}
 
 
-def _decode_safety(d: Mapping[str, Any]) -> Safety:
+def _decode_safety(d: Record) -> Safety:
     return Safety(SafetyState(d["state"]),
                   None if d["latched"] is None else FaultCause(d["latched"]),
                   dict(d["latched_details"]), _decode_conditions(d["active"]), int(d["faults"]))
 
 
-def _encode_conditions(c: Mapping[FaultCause, Mapping[str, Any]]) -> dict[str, Any]:
+def _encode_conditions(c: Mapping[FaultCause, Mapping[str, object]]) -> Record:
     return {cause.value: {k: plain(v) for k, v in d.items()} for cause, d in c.items()}
 
 
-def _decode_conditions(d: Mapping[str, Any]) -> dict[FaultCause, Mapping[str, Any]]:
+def _decode_conditions(d: Record) -> dict[FaultCause, Mapping[str, object]]:
     return {FaultCause(k): dict(v) for k, v in d.items()}
 
 
-def patch_between(expected: UpdateState, actual: UpdateState) -> dict[str, Any] | None:
+def patch_between(expected: UpdateState, actual: UpdateState) -> Record | None:
     """What the runtime changed in the update's state after the update ran (a failed
     command's fault, a calibration's stop or twist): None when nothing."""
     if actual is expected:
         return None
-    out: dict[str, Any] = {}
+    out: Record = {}
     if actual.safety is not expected.safety:
         out["safety"] = _encode_safety(actual.safety)
     if actual.twist_sent != expected.twist_sent:
@@ -177,7 +181,7 @@ def patch_between(expected: UpdateState, actual: UpdateState) -> dict[str, Any] 
     return out or None
 
 
-def apply_patch(s: UpdateState, patch: Mapping[str, Any]) -> UpdateState:
+def apply_patch(s: UpdateState, patch: Record) -> UpdateState:
     if "safety" in patch:
         s = s._replace(safety=_decode_safety(patch["safety"]))
     if "twist_sent" in patch:
@@ -226,7 +230,7 @@ def fill_row(row: F64, r: Readings, c: Commands) -> None:
     row[i + 12] = c.kick
 
 
-def row_readings(row: F64, conditions: Mapping[FaultCause, Mapping[str, Any]]) -> Readings:
+def row_readings(row: F64, conditions: Mapping[FaultCause, Mapping[str, object]]) -> Readings:
     """The readings back from a row (and the cycle's conditions from the side file)."""
     arm = wrench = odom = None
     i = _AT["arm"]
@@ -276,8 +280,8 @@ class InputLog:
         self.rows = 0
         self._block: F64 = np.zeros((BLOCK, WIDTH))
         self._n = 0
-        self._side: list[dict[str, Any]] = []
-        self._q: queue.SimpleQueue[tuple[F64, list[dict[str, Any]]] | None] = queue.SimpleQueue()
+        self._side: list[Record] = []
+        self._q: queue.SimpleQueue[tuple[F64, list[Record]] | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
         self._closed = False
         self.error: BaseException | None = None
@@ -311,7 +315,7 @@ class InputLog:
         if self._n == BLOCK:
             self._flush()
 
-    def patch(self, cycle: int, patch: Mapping[str, Any]) -> None:
+    def patch(self, cycle: int, patch: Record) -> None:
         """The runtime changed the update's state after the cycle ``cycle`` ran."""
         if not self._closed:
             self._side.append({"cycle": cycle, "patch": dict(patch)})
@@ -362,7 +366,7 @@ class ReplayResult(NamedTuple):
     detail: str
 
 
-def read_log(folder: str | Path) -> tuple[Config, F64, list[dict[str, Any]]]:
+def read_log(folder: str | Path) -> tuple[Config, F64, list[Record]]:
     """The configuration, the rows and the side events of a log."""
     folder = Path(folder)
     try:
@@ -384,12 +388,13 @@ def _differs(a: float | F64, b: float | F64) -> bool:
     return not np.array_equal(np.asarray(a), np.asarray(b))
 
 
-def replay(folder: str | Path, progress: Any = None) -> ReplayResult:
+def replay(folder: str | Path, progress: Callable[[int, int], None] | None = None
+           ) -> ReplayResult:
     """Run a log's readings and inbox through a new update; compare the commands."""
     from mmctl.control.cycle import CycleChain
 
     cfg, rows, side = read_log(folder)
-    by_cycle: dict[int, list[dict[str, Any]]] = {}
+    by_cycle: dict[int, list[Record]] = {}
     for ev in side:
         by_cycle.setdefault(int(ev["cycle"]), []).append(ev)
     update = Update(cfg, CycleChain(cfg))
@@ -401,7 +406,7 @@ def replay(folder: str | Path, progress: Any = None) -> ReplayResult:
             state = _patches(state, by_cycle[c])
             done.add(c)
         events = by_cycle.get(cycle, [])
-        conditions: dict[FaultCause, Mapping[str, Any]] = {}
+        conditions: dict[FaultCause, Mapping[str, object]] = {}
         inbox: list[Command] = []
         for ev in events:
             if "conditions" in ev:
@@ -431,7 +436,7 @@ def replay(folder: str | Path, progress: Any = None) -> ReplayResult:
     return ReplayResult(len(rows), None, "")
 
 
-def _patches(state: UpdateState, events: list[dict[str, Any]]) -> UpdateState:
+def _patches(state: UpdateState, events: list[Record]) -> UpdateState:
     for ev in events:
         if "patch" in ev:
             state = apply_patch(state, ev["patch"])

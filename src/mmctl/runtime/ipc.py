@@ -56,7 +56,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple, cast
+from typing import Any, BinaryIO, NamedTuple, cast
 
 import numpy as np
 import structlog
@@ -82,7 +82,9 @@ class Peer(NamedTuple):
     gid: int
 
 
-Handler = Callable[[Mapping[str, Any], Peer], Any]
+#: A control-socket request's handler: the request (a JSON object whose ``cmd`` is a
+#: string) and the client's credentials -> the result, any JSON-encodable value.
+Handler = Callable[[Mapping[str, object], Peer], object]
 
 
 def resolve_socket_path(configured: str = "", environ: Mapping[str, str] | None = None,
@@ -172,7 +174,7 @@ def bind_control_socket(path: Path, mode: int, backlog: int) -> socket.socket:
     return s
 
 
-def call_handler(handler: Handler, req: Mapping[str, Any], peer: Peer) -> dict[str, Any]:
+def call_handler(handler: Handler, req: Mapping[str, object], peer: Peer) -> dict[str, object]:
     """The reply to one parsed request: ``{"ok": true, "result": ...}``, or a one-line
     error for a :class:`MmctlError` (and, logged, for any other exception: a bad
     request must not kill the daemon)."""
@@ -262,7 +264,7 @@ class _Conn:
         #: the client shut its side: answer what it sent, then close
         self.eof = False
         #: the request waiting for a token of the total rate
-        self.pending: dict[str, Any] | None = None
+        self.pending: dict[str, object] | None = None
         self.events = 0
 
 
@@ -335,7 +337,7 @@ class ControlServer:
         self._sel: selectors.BaseSelector
         self._accept_at = 0.0
         self._limiter = RateLimiter(5.0)
-        self._enc_obj: Any = None
+        self._enc_obj: object = None
         self._enc_line = b""
         self._workers: _Workers | None = None
         self._urgent_worker: _Workers | None = None
@@ -637,7 +639,7 @@ class ControlServer:
             if "ok" in req:  # an error reply
                 self._reply(conn, req)
                 continue
-            cmd = req["cmd"]
+            cmd = str(req["cmd"])  # (a string: _parse checked it)
             if cmd in self.urgent:
                 self._run(conn, req, self._urgent_worker)
             elif self._waiting or not self._total.take(now):
@@ -661,7 +663,7 @@ class ControlServer:
             return self._quick_worker
         return self._workers
 
-    def _run(self, conn: _Conn, req: dict[str, Any], workers: _Workers | None) -> None:
+    def _run(self, conn: _Conn, req: dict[str, object], workers: _Workers | None) -> None:
         if workers is None:
             self._reply(conn, self._call(req, conn.peer), cache=True)
             return
@@ -693,7 +695,7 @@ class ControlServer:
             req, conn.pending = conn.pending, None
             conn.busy = False
             if self._alive(conn) and req is not None:
-                self._run(conn, req, self._lane(req["cmd"]))
+                self._run(conn, req, self._lane(str(req["cmd"])))
                 self._advance(conn)
         for fd, due in list(self._throttled.items()):
             if due <= now:
@@ -726,7 +728,7 @@ class ControlServer:
     def _alive(self, conn: _Conn) -> bool:
         return self._conns.get(conn.fd) is conn
 
-    def _reply(self, conn: _Conn, reply: Mapping[str, Any], cache: bool = False) -> None:
+    def _reply(self, conn: _Conn, reply: Mapping[str, object], cache: bool = False) -> None:
         """Queue one reply line; ``cache``: an inline command's result, encoded once per
         object (a snapshot returned again is the same bytes; inline results are never
         changed after they are returned)."""
@@ -769,7 +771,7 @@ class ControlServer:
         conn.events = want
 
     # -- requests -----------------------------------------------------------------------
-    def _parse(self, line: bytes) -> dict[str, Any]:
+    def _parse(self, line: bytes) -> dict[str, object]:
         """The request of one line, or an error reply (has ``ok``)."""
         depth = json_depth(line, self.limits.max_depth)
         if depth > self.limits.max_depth:
@@ -789,13 +791,13 @@ class ControlServer:
             return {"ok": False, "error": 'malformed request: expected {"cmd": "<name>", ...}'}
         return req
 
-    def _call(self, req: Mapping[str, Any], peer: Peer) -> dict[str, Any]:
+    def _call(self, req: Mapping[str, object], peer: Peer) -> dict[str, object]:
         reply = call_handler(self._handler, req, peer)
         if not reply["ok"]:
             self.errors += 1
         return reply
 
-    def _dispatch(self, line: bytes, peer: Peer) -> dict[str, Any]:
+    def _dispatch(self, line: bytes, peer: Peer) -> dict[str, object]:
         """One request line to its reply, on the calling thread (no limits: tests, fuzz)."""
         self.requests += 1
         req = self._parse(line)
@@ -821,7 +823,7 @@ def json_depth(line: bytes, limit: int = 32) -> int:
     return int(depth.max())
 
 
-def encode_reply(reply: Mapping[str, Any]) -> bytes:
+def encode_reply(reply: Mapping[str, object]) -> bytes:
     try:
         return json.dumps(reply, default=_json_default).encode() + b"\n"
     except (TypeError, ValueError, RecursionError) as exc:
@@ -829,7 +831,7 @@ def encode_reply(reply: Mapping[str, Any]) -> bytes:
                            f"({type(exc).__name__})"}).encode() + b"\n"
 
 
-def _send_now(sock: socket.socket, obj: Mapping[str, Any]) -> None:
+def _send_now(sock: socket.socket, obj: Mapping[str, object]) -> None:
     """Best effort, never blocking: one line to a connection about to be closed."""
     try:
         sock.send(encode_reply(obj))
@@ -837,11 +839,11 @@ def _send_now(sock: socket.socket, obj: Mapping[str, Any]) -> None:
         pass
 
 
-def _send(conn: socket.socket, obj: Mapping[str, Any]) -> None:
+def _send(conn: socket.socket, obj: Mapping[str, object]) -> None:
     conn.sendall(encode_reply(obj))
 
 
-def _json_default(o: Any) -> Any:
+def _json_default(o: object) -> object:
     if hasattr(o, "tolist"):
         return o.tolist()
     if hasattr(o, "value"):
@@ -861,7 +863,7 @@ class ControlClient:
         #: the error when nothing listens (default: no daemon, start `mmctl run`)
         self.absent = absent
         self._sock: socket.socket | None = None
-        self._rfile: Any = None
+        self._rfile: BinaryIO | None = None
 
     def connect(self) -> ControlClient:
         """Connect within :attr:`timeout`: a full listen backlog (EAGAIN: the daemon is
@@ -903,7 +905,8 @@ class ControlClient:
 
     def close(self) -> None:
         if self._sock is not None:
-            self._rfile.close()
+            if self._rfile is not None:
+                self._rfile.close()
             self._sock.close()
             self._sock = None
 
@@ -913,11 +916,11 @@ class ControlClient:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def raw(self, line: bytes) -> dict[str, Any]:
+    def raw(self, line: bytes) -> dict[str, object]:
         """Send raw bytes (one line) and return the decoded reply."""
         if self._sock is None:
             self.connect()
-        assert self._sock is not None
+        assert self._sock is not None and self._rfile is not None
         try:
             try:
                 self._sock.sendall(line if line.endswith(b"\n") else line + b"\n")
@@ -935,11 +938,11 @@ class ControlClient:
             self.close()  # the rest of that line would be read as the next reply
             raise IpcError(f"the reply from {self.path} is longer than {self.max_reply} bytes")
         try:
-            return cast(dict[str, Any], json.loads(reply))
+            return cast(dict[str, object], json.loads(reply))
         except ValueError:
             raise IpcError(f"the reply from {self.path} is not JSON: {reply[:80]!r}") from None
 
-    def call(self, cmd: str, **args: Any) -> Any:
+    def call(self, cmd: str, **args: object) -> Any:
         """One request; returns ``result`` or raises :class:`IpcError` with the daemon's error."""
         # timeout_s: the daemon finishes (or abandons) the command within this client's
         # patience, so a reply that never arrives never means "done later"
@@ -959,7 +962,7 @@ class ControlClient:
 
 
 def request(path: Path | str, cmd: str, timeout: float = 10.0, absent: str | None = None,
-            max_reply: int = MAX_LINE, **args: Any) -> Any:
+            max_reply: int = MAX_LINE, **args: object) -> Any:
     """Open, send one request, close (``absent``, ``max_reply``: see :class:`ControlClient`)."""
     with ControlClient(path, timeout, absent, max_reply) as c:
         return c.call(cmd, **args)

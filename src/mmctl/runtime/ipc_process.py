@@ -48,7 +48,6 @@ import threading
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
 
 import structlog
 
@@ -115,7 +114,7 @@ class ProcessControlServer:
         self._first: socket.socket | None = None
         """the connection to the process :meth:`open` started (taken by the reader)"""
         self._send_lock = threading.Lock()
-        self._enc_obj: Any = None
+        self._enc_obj: object = None
         self._enc_line = b""
         self.requests = 0
         self.errors = 0
@@ -270,7 +269,7 @@ class ProcessControlServer:
 
         workers.submit(job)
 
-    def _answer(self, backend: socket.socket, rid: int, reply: Mapping[str, Any],
+    def _answer(self, backend: socket.socket, rid: int, reply: Mapping[str, object],
                 cache: bool = False) -> None:
         """Send one reply (any thread); ``cache``: an inline result, encoded once per
         object (a snapshot returned again is the same bytes)."""
@@ -312,7 +311,7 @@ class _Slot:
 
     def __init__(self, status: bool) -> None:
         self.event = threading.Event()
-        self.reply: dict[str, Any] = {}
+        self.reply: dict[str, object] = {}
         self.status = status
 
 
@@ -329,7 +328,7 @@ class Forwarder:
         self._own = Peer(os.getpid(), os.getuid(), os.getgid())
         self._cv = threading.Condition()
         self._status_running = False
-        self._status: tuple[float, dict[str, Any]] = (-math.inf, {})
+        self._status: tuple[float, dict[str, object]] = (-math.inf, {})
         """(start [monotonic s], reply) of the newest status round trip finished"""
         self._command_done = -math.inf
         """[monotonic s] the newest reply to another command arrived"""
@@ -341,7 +340,7 @@ class Forwarder:
         with self._send_lock:
             self._sock.sendall(line)
 
-    def handle(self, req: Mapping[str, Any], peer: Peer) -> Any:
+    def handle(self, req: Mapping[str, object], peer: Peer) -> object:
         wait = req.get("timeout_s")
         wait = (float(wait) if isinstance(wait, int | float) and not isinstance(wait, bool)
                 and math.isfinite(wait) and 0 < wait <= 600 else REPLY_WAIT) + 2.0
@@ -353,7 +352,7 @@ class Forwarder:
             raise _Remote(str(reply.get("error", "unknown error")))
         return reply.get("result")
 
-    def _coalesced_status(self, wait: float) -> dict[str, Any]:
+    def _coalesced_status(self, wait: float) -> dict[str, object]:
         """A status reply from a round trip that started after this request arrived, or
         at most :data:`STATUS_SHARE` before it and after the newest command's reply."""
         arrived = time.monotonic()
@@ -385,8 +384,8 @@ class Forwarder:
                 self._cv.notify_all()
         return reply
 
-    def _round_trip(self, req: Mapping[str, Any], peer: Peer, wait: float,
-                    status: bool = False) -> dict[str, Any]:
+    def _round_trip(self, req: Mapping[str, object], peer: Peer, wait: float,
+                    status: bool = False) -> dict[str, object]:
         rid = next(self._ids)
         slot = _Slot(status)
         self._pending[rid] = slot

@@ -33,7 +33,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
 from enum import Enum
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # typing.Self is 3.11+; the package supports 3.10
     from typing_extensions import Self
@@ -51,7 +51,7 @@ _LABEL = 8  # width of the line labels ("force   ", "loop    ")
 
 # --- the block, from a snapshot --------------------------------------------------------
 
-def render(snap: Mapping[str, Any], width: int = 100) -> list[str]:
+def render(snap: Mapping[str, object], width: int = 100) -> list[str]:
     """The status block's lines for one snapshot of the daemon; pure, never raises.
 
     snap: the daemon's snapshot (keys in the module's tests and in ``mmctl run``);
@@ -73,7 +73,7 @@ def render(snap: Mapping[str, Any], width: int = 100) -> list[str]:
     return [_fit(line, width) for line in lines]
 
 
-def _header(snap: Mapping[str, Any]) -> str:
+def _header(snap: Mapping[str, object]) -> str:
     state = _text(snap.get("state"))
     fault = _text(snap.get("fault"))
     mode = f"mode {_text(snap.get('mode'))}"
@@ -87,7 +87,7 @@ def _header(snap: Mapping[str, Any]) -> str:
     return "mmctl ─ " + "   ".join(parts)
 
 
-def _force(f_h: Any) -> str:
+def _force(f_h: object) -> str:
     values = _items(f_h, 6)
     force = "  ".join(f"{axis} {_num(v, '+6.1f'):>6}"
                       for axis, v in zip(("fx", "fy", "fz"), values[:3]))
@@ -96,7 +96,7 @@ def _force(f_h: Any) -> str:
     return f"{'force':<{_LABEL}}{force} N     {torque} N m"
 
 
-def _speed(snap: Mapping[str, Any]) -> str:
+def _speed(snap: Mapping[str, object]) -> str:
     """Measured speeds (``-`` while a device is not read), the desired one labelled."""
     return (f"{'speed':<{_LABEL}}end-effector {_num(snap.get('ee_speed'), '.3f')} m/s   "
             f"base {_num(snap.get('base_speed'), '.3f')} m/s  "
@@ -104,7 +104,7 @@ def _speed(snap: Mapping[str, Any]) -> str:
             f"{_num(snap.get('ee_speed_desired'), '.3f')} m/s)")
 
 
-def _energy(snap: Mapping[str, Any]) -> str:
+def _energy(snap: Mapping[str, object]) -> str:
     arm, base = _finite(snap.get("energy_arm")), _finite(snap.get("energy_base"))
     share = "-"
     if arm is not None and base is not None and arm + base > 0:
@@ -113,7 +113,7 @@ def _energy(snap: Mapping[str, Any]) -> str:
             f"(base share {share} %)")
 
 
-def misses_text(loop: Mapping[str, Any]) -> str:
+def misses_text(loop: Mapping[str, object]) -> str:
     """The loop's misses as status and the live view both say them: deadlines missed /
     (cycles run + deadlines missed), over the labelled window and since the start."""
     m = loop.get("misses")
@@ -124,7 +124,7 @@ def misses_text(loop: Mapping[str, Any]) -> str:
             f"({_num(m.get('since_start_pct'), '.2f')} %)")
 
 
-def _loop(loop: Any) -> str:
+def _loop(loop: object) -> str:
     loop = loop if isinstance(loop, Mapping) else {}
     return (f"{'loop':<{_LABEL}}{_num(loop.get('rate_hz'), '.0f')} Hz   "
             f"compute p50/p99 {_num(loop.get('compute_p50_us'), '.0f')}/"
@@ -133,25 +133,25 @@ def _loop(loop: Any) -> str:
             f"over the last {_num(loop.get('window_s'), '.0f')} s")
 
 
-def _finite(value: Any) -> float | None:
+def _finite(value: object) -> float | None:
     """``value`` as a finite float, else None (missing, NaN, infinite, not a number)."""
     if value is None or isinstance(value, (str, bytes)):
         return None
     try:
-        x = float(value)
+        x = float(value)  # type: ignore[arg-type]  # (anything: a failure is None)
     except (TypeError, ValueError, OverflowError):
         return None
     return x if math.isfinite(x) else None
 
 
-def _num(value: Any, fmt: str) -> str:
+def _num(value: object, fmt: str) -> str:
     x = _finite(value)
     if x is None:
         return "-"
     return format(round(x), fmt) if fmt.endswith("d") else format(x, fmt)
 
 
-def _duration(value: Any) -> str:
+def _duration(value: object) -> str:
     s = _finite(value)
     if s is None:
         return "-"
@@ -162,7 +162,7 @@ def _duration(value: Any) -> str:
     return f"{int(s // 3600)} h {int(s % 3600 // 60):02d} min"
 
 
-def _text(value: Any) -> str:
+def _text(value: object) -> str:
     """One printable line: '-' for nothing, an Enum's value, control characters blanked
     (a newline in a fault message must not make the block a row taller)."""
     if isinstance(value, Enum):
@@ -174,24 +174,25 @@ def _text(value: Any) -> str:
     return "".join(ch if ch.isprintable() else " " for ch in str(value))
 
 
-def _flag(value: Any) -> bool:
+def _flag(value: object) -> bool:
     try:
         return bool(value)
     except (TypeError, ValueError):  # a numpy array, say: no single truth value
         return False
 
 
-def _names(value: Any) -> str:
+def _names(value: object) -> str:
     if isinstance(value, str):
         return _text(value)
     items = [_text(v) for v in value] if isinstance(value, Iterable) else []
     return ", ".join(items) if items else "-"
 
 
-def _items(value: Any, n: int) -> list[Any]:
+def _items(value: object, n: int) -> list[object]:
     """The first ``n`` items of a sequence (list, tuple, numpy array), None-padded."""
     try:
-        items = list(value)[:n] if value is not None and not isinstance(value, str) else []
+        items = (list(value)[:n] if isinstance(value, Iterable) and not isinstance(value, str)
+                 else [])
     except TypeError:
         items = []
     return items + [None] * (n - len(items))
@@ -222,7 +223,7 @@ class LiveView:
     after those children have exited (they keep the pipe's write end).
     """
 
-    def __init__(self, snapshot: Callable[[], Mapping[str, Any]], *, fd: int = 1,
+    def __init__(self, snapshot: Callable[[], Mapping[str, object]], *, fd: int = 1,
                  rate_hz: float = 5.0, stderr: bool = False):
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
             raise ValueError(f"rate_hz = {rate_hz!r}: a positive, finite number of frames/s")

@@ -10,7 +10,8 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from typing import Any, TextIO
+from collections.abc import Callable
+from typing import TextIO
 
 import structlog
 
@@ -36,7 +37,7 @@ def setup_logging(level: str = "info", stream: TextIO | None = None,
         json = not (hasattr(out, "isatty") and out.isatty())
     global CURRENT
     CURRENT = (level, json)
-    renderer: Any = (structlog.processors.JSONRenderer() if json
+    renderer: structlog.typing.Processor = (structlog.processors.JSONRenderer() if json
                      else structlog.dev.ConsoleRenderer(colors=False))
     structlog.configure(
         processors=[
@@ -61,7 +62,7 @@ class RateLimiter:
     events suppressed since the last one let through (to log as ``suppressed=n``).
     """
 
-    def __init__(self, interval: float = 1.0, clock: Any = time.monotonic):
+    def __init__(self, interval: float = 1.0, clock: Callable[[], float] = time.monotonic):
         self.interval = interval
         self._clock = clock
         self._last: dict[str, float] = {}

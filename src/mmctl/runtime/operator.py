@@ -13,7 +13,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import structlog
 
@@ -40,6 +40,8 @@ log = structlog.get_logger("mmctl.daemon")
 _FINISH_MIN = 0.5
 
 
+T = TypeVar("T")
+
 if TYPE_CHECKING:
     from mmctl.runtime.sim_link import SimLink
     from mmctl.telemetry.service import TelemetryService
@@ -55,7 +57,7 @@ class Operator:
     """
 
     def __init__(self, runtime: LoopRuntime, calibrations: Calibrations, *,
-                 status: Callable[[], dict[str, Any]], request_stop: Callable[[str], None],
+                 status: Callable[[], dict[str, object]], request_stop: Callable[[str], None],
                  sim: SimLink | None = None, telemetry: TelemetryService | None = None):
         self.rt = runtime
         self.cfg = runtime.cfg
@@ -72,19 +74,19 @@ class Operator:
         self.base_enable = threading.Lock()
         self._handlers = self._command_table()
 
-    def call(self, cmd: str, **args: Any) -> Any:
+    def call(self, cmd: str, **args: object) -> Any:
         """Run one control command (same names as the socket's) and wait for its result."""
         return self.handle({"cmd": cmd, **args}, None)
 
-    def handle(self, req: Mapping[str, Any], peer: Peer | None = None) -> Any:
+    def handle(self, req: Mapping[str, object], peer: Peer | None = None) -> object:
         """Dispatch one control-socket request (see :mod:`mmctl.runtime.ipc`)."""
-        cmd = req["cmd"]
+        cmd = str(req["cmd"])
         handler = self._handlers.get(cmd)
         if handler is None:
             raise MmctlError(f"unknown command {cmd!r}; known: {', '.join(self._handlers)}")
         return handler(req)
 
-    def _command_table(self) -> dict[str, Callable[[Mapping[str, Any]], Any]]:
+    def _command_table(self) -> dict[str, Callable[[Mapping[str, object]], object]]:
         """The control socket's commands: name -> handler of the request."""
         return {
             "status": lambda req: self.status_snapshot(),
@@ -103,7 +105,7 @@ class Operator:
             "get": self._cmd_get,
         }
 
-    def _cmd_set(self, req: Mapping[str, Any]) -> Any:
+    def _cmd_set(self, req: Mapping[str, object]) -> object:
         """A run-time parameter change (:mod:`mmctl.control.params`): validated and
         built on this worker, installed on the loop (no velocity jump), logged."""
         key = _arg(req, "key", str)
@@ -118,20 +120,20 @@ class Operator:
         log.info("param_set", key=key, old=old, new=new)
         return {"key": key, "old": old, "value": new, "status": self.status_snapshot()}
 
-    def _cmd_get(self, req: Mapping[str, Any]) -> Any:
+    def _cmd_get(self, req: Mapping[str, object]) -> object:
         key = _arg(req, "key", str)
         return {"key": key, "value": get_value(self.rt.core.cfg, key),
                 "settable": key in SETTABLE, "changed": key in self.rt.core.changed}
 
-    def _cmd_tare(self, req: Mapping[str, Any]) -> Any:
+    def _cmd_tare(self, req: Mapping[str, object]) -> object:
         self._hands_off_for_tare()
         return self.rt.on_loop(Tare())
 
-    def _cmd_stop(self, req: Mapping[str, Any]) -> Any:
+    def _cmd_stop(self, req: Mapping[str, object]) -> object:
         self.request_stop("mmctl stop")
         return {"stopping": True}
 
-    def _cmd_trial(self, req: Mapping[str, Any]) -> Any:
+    def _cmd_trial(self, req: Mapping[str, object]) -> object:
         if self.telemetry is None:
             raise MmctlError("'trial' needs the telemetry service")
         return self.telemetry.command(req, self.rt.on_loop, self._install_hook, self.rt.core)
@@ -152,7 +154,7 @@ class Operator:
         except MmctlError as exc:
             log.warning("sim_hold_failed", error=str(exc))
 
-    def _enable_request(self, budget: float) -> dict[str, Any]:
+    def _enable_request(self, budget: float) -> dict[str, object]:
         """Operator re-arm within ``budget`` [s].  Neither step that waits for a device
         runs on the loop thread, which keeps its period meanwhile:
 
@@ -171,6 +173,7 @@ class Operator:
         disabled again."""
         deadline = time.monotonic() + budget
         links = self.rt.on_loop(BeginEnable(), budget)
+        assert isinstance(links, tuple)  # (BeginEnable's reply: the links' names)
         try:
             if "sensor" in links:
                 self._reconnect_sensor()
@@ -205,7 +208,7 @@ class Operator:
                 raise
         return self._then_status(None)
 
-    def _then_status(self, _done: Any) -> dict[str, Any]:
+    def _then_status(self, _done: object) -> dict[str, object]:
         """A command's reply: the status, built on the caller's thread (never on the
         loop's: building it costs a share of a cycle) once the command has run."""
         return self.status_snapshot()
@@ -262,7 +265,7 @@ class Operator:
         log.info("arm_reconnected")
 
 
-def _budget(req: Mapping[str, Any], default: float) -> float:
+def _budget(req: Mapping[str, object], default: float) -> float:
     """How long [s] a command may take: ``default``, shortened to 80 % of the client's
     own ``timeout_s`` when it sends one (the rest is its margin for the reply), so a
     client never reports a failure that the daemon then carries out."""
@@ -273,7 +276,7 @@ def _budget(req: Mapping[str, Any], default: float) -> float:
     return default
 
 
-def _arg(req: Mapping[str, Any], key: str, typ: type) -> Any:
+def _arg(req: Mapping[str, object], key: str, typ: type[T]) -> T:
     val = req.get(key)
     if not isinstance(val, typ):
         raise MmctlError(f"request {req.get('cmd')!r} needs {key!r} ({typ.__name__})")

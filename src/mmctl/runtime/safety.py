@@ -11,7 +11,6 @@ The loop's own cycle does not go through this class: its pure update
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import Any
 
 import structlog
 
@@ -64,11 +63,11 @@ class SafetyMonitor:
         return self.value.latched
 
     @property
-    def latched_details(self) -> dict[str, Any]:
+    def latched_details(self) -> dict[str, object]:
         return dict(self.value.latched_details)
 
     @property
-    def active(self) -> dict[FaultCause, dict[str, Any]]:
+    def active(self) -> dict[FaultCause, dict[str, object]]:
         return {c: dict(d) for c, d in self.value.active.items()}
 
     @property
@@ -85,7 +84,7 @@ class SafetyMonitor:
         log_events(events, self._limiter)
         return stop
 
-    def trip(self, cause: FaultCause, **details: Any) -> bool:
+    def trip(self, cause: FaultCause, **details: object) -> bool:
         """Fault right now (e.g. an exception in the cycle); True if newly ARMED -> FAULT."""
         self.value, stop, events = pure.trip(self.value, cause, details)
         log_events(events, self._limiter)
@@ -109,6 +108,6 @@ class SafetyMonitor:
         log_events(events, self._limiter)
         return stop
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         """Plain-JSON status."""
         return self.value.as_dict()

@@ -171,7 +171,7 @@ class SimLink:
             pass
 
     # -- requests -----------------------------------------------------------------------
-    def call(self, cmd: str, timeout: float = 5.0, **args: Any) -> Any:
+    def call(self, cmd: str, timeout: float = 5.0, **args: object) -> Any:
         """One request to the simulation's control socket (raises IpcError); replies up
         to 256 MB (``log``: the fakes' command logs)."""
         return request(self.path, cmd, timeout=timeout, absent=absent_message(self.path),
@@ -190,6 +190,6 @@ class SimLink:
         """True once :meth:`close` ran (a simulation this daemon started is gone)."""
         return self._closed
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> dict[str, object]:
         """What the daemon's status says about the link (no request: cheap)."""
         return {"socket": str(self.path), "pid": self.pid, "owned": self.owned}
