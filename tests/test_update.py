@@ -61,7 +61,7 @@ class Rig:
         return self.update.chain
 
     def readings(self, fresh_arm: bool = True, conditions: dict[FaultCause, Any] | None = None,
-                 overrun: tuple[int, int] | None = None) -> Readings:
+                 overrun: tuple[int, int] | None = None, calibrating: bool = False) -> Readings:
         q = np.array([0.0, -1.2, 1.5, -1.9, -1.57, 0.0])
         r = self.chain.model.fk_base(np.concatenate((q, np.zeros(3))), "sensor").rotation
         raw = self.chain.wrench.gravity_wrench(r)
@@ -72,7 +72,8 @@ class Rig:
         arm = ArmState(q, np.zeros(6), self.controller_time, 2, 1)
         return Readings(self.index, self.t, DT, arm, Wrench(raw[:3], raw[3:], self.t, self.seq),
                         Odometry(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.t), self.inputs,
-                        conditions or {}, overrun, 0 if overrun is None else overrun[0])
+                        conditions or {}, overrun, 0 if overrun is None else overrun[0],
+                        calibrating=calibrating)
 
     def step(self, inbox: list[Command] | None = None, **kw: Any) -> Commands:
         self.t += DT
@@ -294,6 +295,31 @@ def test_the_base_twist_goes_every_divider_th_cycle_or_at_once_on_a_jump() -> No
     # a stop forgets the last twist: the first after a re-enable goes at once
     r.step([Disable()])
     assert r.state.twist_sent is None
+
+
+def test_while_a_calibration_runs_the_arm_command_is_the_routines_and_the_base_rests() -> None:
+    """The update holds the controller and sends no speedJ of its own (the routine's
+    goes out instead, :mod:`mmctl.runtime.calibrate`), and the base gets a zero twist on
+    the divider's grid, at once when the last twist sent was not zero: all decided in
+    the update, so the runtime changes none of its state."""
+    r = rig(loop={"base_divider": 4, "base_jump": 0.05})
+    r.step()
+    r.enable()
+    r.force = PUSH.copy()
+    for _ in range(40):
+        r.step()
+    assert r.state.twist_sent is not None and any(r.state.twist_sent)  # the base moved
+    r.force = np.zeros(3)
+    cmds = r.step(calibrating=True)  # the first calibrating cycle: the rest goes at once
+    assert cmds.qd_arm is None and cmds.kick and not cmds.stop
+    assert cmds.twist == (0.0, 0.0, 0.0) and r.state.twist_sent == (0.0, 0.0, 0.0)
+    sent = []
+    for _ in range(12):
+        cmds = r.step(calibrating=True)
+        assert cmds.qd_arm is None and cmds.result is not None
+        sent.append(cmds.twist)
+        assert r.state.safety.armed
+    assert sent.count((0.0, 0.0, 0.0)) == 3 and sent.count(None) == 9
 
 
 def test_a_loop_overrun_is_a_fault_and_enable_waits_for_a_cycle_on_time() -> None:

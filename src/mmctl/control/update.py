@@ -270,10 +270,13 @@ class Update:
         twist: tuple[float, float, float] | None = None
         if stop:
             s = s._replace(twist_sent=None)
-        elif safety.armed and result is not None and not r.calibrating:
-            qd_arm = result.qd_arm
-            t = result.twist
-            tw = (float(t[0]), float(t[1]), float(t[2]))
+        elif safety.armed and result is not None:
+            if r.calibrating:  # the routine's speedJ goes out instead; the base rests
+                tw = (0.0, 0.0, 0.0)
+            else:
+                qd_arm = result.qd_arm
+                t = result.twist
+                tw = (float(t[0]), float(t[1]), float(t[2]))
             if self._base_due(r.index, tw, s.twist_sent):
                 twist = tw
                 s = s._replace(twist_sent=tw)

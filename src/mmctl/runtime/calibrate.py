@@ -28,7 +28,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 import structlog
 
-from mmctl.control import safety as sm
 from mmctl.control.calibration import (
     Plan,
     ToolCalibration,
@@ -37,10 +36,10 @@ from mmctl.control.calibration import (
     gravity_direction,
     plan_poses,
 )
+from mmctl.control.update import Disable
 from mmctl.errors import MmctlError
 from mmctl.runtime.core import CycleResult
 from mmctl.runtime.driver import LoopRuntime
-from mmctl.runtime.safety import log_events
 from mmctl.types import Vec, Wrench
 
 log = structlog.get_logger("mmctl.daemon")
@@ -170,16 +169,17 @@ class Calibrations:
         return self.report()
 
     def _stop(self, c: ToolCalibration) -> None:
-        """Loop thread: an aborted routine: speedStop, zero base velocity, disarmed."""
-        safety, stop, events = sm.disable(self.rt.ustate.safety)
-        self.rt.ustate = self.rt.ustate._replace(safety=safety)
-        log_events(events, self.rt.limiter)
-        if stop:
-            self.rt.send_stop()
+        """Loop thread: an aborted routine: speedStop and zero base velocity at once,
+        and a :class:`~mmctl.control.update.Disable` into the loop's inbox, so the
+        update disarms (as the operator's ``disable`` does; never a state changed
+        behind the update's back).  The operator's abort runs before this cycle's
+        update, which takes the Disable in the same cycle; an abort the routine finds
+        during a cycle is disarmed by the next one, whose update sends no motion."""
+        self.rt.send_stop()
+        self.rt.submit(Disable())
         c.closed = True
         log.warning("calibration_aborted", reason=c.error, pose=c.index + 1,
                     weighed=len(c.samples))
-        self.rt.update_status()
 
     def report(self) -> dict[str, object]:
         """Progress of the last calibration; once done, its fit and what it weighed."""

@@ -434,17 +434,17 @@ class LoopRuntime:
 
     def _calibration_commands(self, calib: ToolCalibration, c: Commands,
                               r: Readings) -> Commands:
-        """A tool-load calibration's cycle in place of the controller's motion."""
+        """A tool-load calibration's cycle: its speedJ in place of the controller's (the
+        update holds the controller and the base at rest while it runs), or the stop
+        when it aborts (its disarm reaches the next update as a Disable command)."""
         if self.calibration_cycle is None:
             return c
         result = self.calibration_cycle(calib, c.result, r.wrench, self.ustate.arm_repeats)
         if c.stop or not self.ustate.safety.armed or result is None or c.result is None:
             return c._replace(result=result)
-        twist = (0.0, 0.0, 0.0) if self.update._base_due(r.index, (0.0, 0.0, 0.0),
-                                                         self.ustate.twist_sent) else None
-        if twist is not None:
-            self.ustate = self.ustate._replace(twist_sent=twist)
-        return Commands(False, result.qd_arm, twist, False, result)
+        if not calib.running:  # aborted in this cycle: the stop went out, no motion
+            return Commands(False, None, None, False, result)
+        return Commands(False, result.qd_arm, c.twist, False, result)
 
     # -- write --------------------------------------------------------------------------
     def _write(self, c: Commands, row: int) -> None:
@@ -480,7 +480,8 @@ class LoopRuntime:
                       exc: SafetyFault | TransportError) -> None:
         """A command that failed: the write's one reflex.  The fault latches in this
         cycle (the pure transition, :func:`mmctl.control.safety.trip`) and the stop goes
-        out at once; the next reads find the cause if it persists."""
+        out at once; the next reads find the cause if it persists.  The input log
+        records the state it leaves as a patch (replay applies it)."""
         cause = exc.cause if isinstance(exc, SafetyFault) else default
         details = {"device": device,
                    **(exc.details if isinstance(exc, SafetyFault) else {"error": str(exc)})}
