@@ -37,7 +37,14 @@ Every way a drive stops is the one its objects select, as on a device:
   each switch-off logged with the wheel speed (:meth:`FakeDrives.power_offs`).
 
 A supervisor thread acts on deadlines and ramp ends as they fall due (each at its own
-time in the plant's integration).  Fault injection: :meth:`FakeDrives.inject_fault`,
+time in the plant's integration).  Like a real drive, which timestamps a frame as its
+controller receives it and services its watchdogs in real time, the watchdogs judge each
+heartbeat and RPDO by when it reached the bus (python-can's arrival stamp), never by when
+the shared receive thread got round to it: on a loaded machine that thread falls seconds
+behind, and frames the master sent on time would otherwise look late.  For the same
+reason no deadline acts while frames that reached the bus before it still wait to be
+handled (:class:`_Arrivals`); once they are, a deadline the master really missed acts,
+at its own time.  Fault injection: :meth:`FakeDrives.inject_fault`,
 :meth:`FakeDrives.inject_silence` (heartbeat stops, nothing answered or heard),
 :meth:`FakeDrives.resume`, :meth:`FakeDrives.reboot` (power off, all objects to their
 defaults, boot-up, PRE-OPERATIONAL; an NMT reset node / communication does the same).
@@ -46,6 +53,7 @@ defaults, boot-up, PRE-OPERATIONAL; an NMT reset node / communication does the s
 from __future__ import annotations
 
 import math
+import queue
 import threading
 import time
 from collections import deque
@@ -55,9 +63,11 @@ from functools import partial
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
+import can
 import canopen
 import numpy as np
 import structlog
+from canopen.network import MessageListener
 from canopen.pdo import PdoMap
 from canopen.sdo.exceptions import SdoAbortedError
 from numpy.typing import NDArray
@@ -103,6 +113,58 @@ _ACCEPTED: dict[int, frozenset[int]] = {
 }
 #: The supervisor thread sleeps at most this long between looks at the clock [s].
 _SUPERVISOR_NAP = 0.05
+#: While a due deadline waits for frames that reached the bus before it to be handled,
+#: the supervisor looks again after this [s].
+_BACKLOG_NAP = 0.005
+#: A frame's arrival stamp older than this is not believed (a wall-clock step, a frame
+#: never stamped): the time it is handled counts as its arrival [s].
+_MAX_BACKLOG = 30.0
+
+
+def _arrival(stamp: float | None) -> float:
+    """When a frame being handled now reached the bus, on the monotonic clock: ``stamp``
+    is python-can's ``Message.timestamp``, wall clock (``time.time()``), set as the frame
+    reached the channel (the virtual bus stamps it on send; in the simulator's process
+    that is :mod:`mmctl.sim.socketcand` putting the master's frame on the channel).
+    Never after now; a missing or unbelievable stamp (see :data:`_MAX_BACKLOG`) gives
+    now.  (Wall clock read first: a pause between the two reads makes the frame look
+    younger, never older than it is.)"""
+    wall = time.time()
+    now = time.monotonic()
+    if stamp is None:
+        return now
+    age = wall - stamp
+    return now - age if 0.0 < age <= _MAX_BACKLOG else now
+
+
+class _Arrivals(MessageListener):
+    """canopen's listener (it hands each received frame to the nodes' handlers), which
+    also knows how far the receive thread has got: the arrival stamp of the frame it
+    took last (every frame that reached the bus before it has been handled) and, through
+    the virtual bus's receive queue (a frame put there counts as an unfinished task until
+    this listener has handled it: ``queue.Queue.task_done``), whether any frame waits."""
+
+    def __init__(self, network: canopen.Network, bus: can.BusABC) -> None:
+        super().__init__(network)
+        rx = getattr(bus, "queue", None)  # python-can's VirtualBus: its receive queue
+        self._rx: queue.Queue[can.Message] | None = rx if isinstance(rx, queue.Queue) else None
+        self._stamp = time.time()  # nothing before this reached us
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self._stamp = msg.timestamp
+        try:
+            super().on_message_received(msg)
+        finally:
+            if self._rx is not None:
+                self._rx.task_done()
+
+    def horizon(self, now: float) -> float:
+        """The monotonic time [s] before which every frame that reached the bus has been
+        handled: ``now`` when none waits (or, on a bus without a queue to look at,
+        always), else the arrival of the frame in hand (or of the last one handled)."""
+        if self._rx is None or self._rx.unfinished_tasks == 0:
+            return now
+        return now - max(0.0, time.time() - self._stamp)
 
 
 @dataclass
@@ -122,14 +184,15 @@ class _Drive:
     log: deque[tuple[float, int]] = field(default_factory=lambda: deque(maxlen=20_000))
     #: while the wheel ramps to rest: the state entered once it is at rest
     ramp_to: ds.Cia402State | None = None
-    #: consumer heartbeat (0x1016:01): producer node id, time [s]; last heartbeat seen
-    #: (None: monitoring not started, i.e. none received since configured or since the
-    #: last timeout)
+    #: consumer heartbeat (0x1016:01): producer node id, time [s]; arrival (monotonic)
+    #: of the last heartbeat seen (None: monitoring not started, i.e. none received since
+    #: configured or since the last timeout)
     hb_producer: int = 0
     hb_time: float = 0.0
     hb_last: float | None = None
     #: RPDO deadline (0x1400+n:05) [s] per RPDO number n (0-based), loaded on NMT
-    #: start; last reception per RPDO (monitoring starts with the first one)
+    #: start; arrival (monotonic) of the last reception per RPDO (monitoring starts with
+    #: the first one)
     rpdo_no: dict[int, int] = field(default_factory=dict)
     rpdo_timer: dict[int, float] = field(default_factory=dict)
     rpdo_last: dict[int, float] = field(default_factory=dict)
@@ -172,6 +235,7 @@ class FakeDrives:
         self._lock = self.plant.lock
         self._cond = threading.Condition(self._lock)
         self._network: canopen.Network | None = None
+        self._arrivals: _Arrivals | None = None
         self._drives: dict[int, _Drive] = {}
         self._sync_count = 0
         self._sync_time: float | None = None  # while handling a SYNC: its time
@@ -188,9 +252,13 @@ class FakeDrives:
         PRE-OPERATIONAL; heartbeat off until the master writes 0x1017)."""
         if self._network is not None:
             return self
-        net = canopen.Network()
+        bus = can.Bus(interface="virtual", channel=self.cfg.canopen.channel)
+        net = canopen.Network(bus)
         net.NOTIFIER_CYCLE = 0.05
-        net.connect(interface="virtual", channel=self.cfg.canopen.channel)
+        self._arrivals = _Arrivals(net, bus)
+        assert type(net.listeners[0]) is MessageListener
+        net.listeners[0] = self._arrivals  # in place of canopen's own, doing what it did
+        net.connect()
         self._network = net
         for wheel, nid in enumerate(self.node_ids):
             node = canopen.LocalNode(nid, ds.build_object_dictionary(nid))
@@ -227,6 +295,7 @@ class FakeDrives:
             for drive in self._drives.values():
                 drive.node.nmt.stop_heartbeat()
             net.disconnect()
+            self._arrivals = None  # nothing is received any more: none waits
             log.info("fake_drives_stopped", channel=self.cfg.canopen.channel)
         self.check()
 
@@ -505,21 +574,27 @@ class FakeDrives:
 
     def _service(self, now: float) -> float:
         """Everything due by ``now``: watchdog events (at their deadlines, in order),
-        ends of ramps.  Returns when the next thing is due (monotonic [s], inf: none)."""
+        ends of ramps.  Returns when the next thing is due (monotonic [s], inf: none).
+
+        A deadline acts only once every frame that reached the bus before it has been
+        handled (:meth:`_Arrivals.horizon`): one still waiting in the receive queue may
+        be the heartbeat or RPDO that meets it.  Until then it is held, looked at again
+        every :data:`_BACKLOG_NAP`."""
         if self._servicing:
             return math.inf
         self._servicing = True
         try:
+            seen = now if self._arrivals is None else min(now, self._arrivals.horizon(now))
             due: list[tuple[float, int, _Drive, int, str]] = []
             for d in self._drives.values():
                 if d.hb_last is not None and d.hb_time > 0.0 \
-                        and now >= d.hb_last + d.hb_time:
+                        and seen >= d.hb_last + d.hb_time:
                     due.append((d.hb_last + d.hb_time, d.wheel, d, ds.EMCY_HEARTBEAT,
                                 "heartbeat consumer timeout"))
                     d.hb_last = None
                 for no, last in list(d.rpdo_last.items()):
                     limit = d.rpdo_timer.get(no, 0.0)
-                    if limit > 0.0 and now >= last + limit:
+                    if limit > 0.0 and seen >= last + limit:
                         due.append((last + limit, d.wheel, d, ds.EMCY_RPDO_TIMEOUT,
                                     f"rpdo{no + 1} deadline missed"))
                         del d.rpdo_last[no]
@@ -536,11 +611,12 @@ class FakeDrives:
                         self._set_state(d, then, now)
                     else:
                         wake = min(wake, now + self.plant.rest_time(d.wheel) + SUBSTEP)
+                deadlines = [last + d.rpdo_timer[no] for no, last in d.rpdo_last.items()
+                             if d.rpdo_timer.get(no, 0.0) > 0.0]
                 if d.hb_last is not None and d.hb_time > 0.0:
-                    wake = min(wake, d.hb_last + d.hb_time)
-                for no, last in d.rpdo_last.items():
-                    if d.rpdo_timer.get(no, 0.0) > 0.0:
-                        wake = min(wake, last + d.rpdo_timer[no])
+                    deadlines.append(d.hb_last + d.hb_time)
+                for t in deadlines:  # one past now is held: frames before it still wait
+                    wake = min(wake, t if t > now else now + _BACKLOG_NAP)
             return wake
         finally:
             self._servicing = False
@@ -640,13 +716,14 @@ class FakeDrives:
 
     def _on_consumed_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         producer = can_id - 0x700
-        now = time.monotonic()
         with self._lock:
+            now = time.monotonic()
+            at = _arrival(timestamp)  # judged by when it reached the bus
             for d in self._drives.values():
                 if d.silent or d.hb_producer != producer or d.hb_time <= 0.0:
                     continue
                 first = d.hb_last is None
-                d.hb_last = now
+                d.hb_last = at if d.hb_last is None else max(d.hb_last, at)
                 if first:
                     self._note(d, now, f"heartbeat consumer: node {producer} heard")
                     self._cond.notify_all()
@@ -680,8 +757,9 @@ class FakeDrives:
             now = time.monotonic()
             no = d.rpdo_no.get(id(pdo), 0)
             if d.rpdo_timer.get(no, 0.0) > 0.0:
+                at = _arrival(pdo.timestamp)  # judged by when it reached the bus
                 first = no not in d.rpdo_last
-                d.rpdo_last[no] = now
+                d.rpdo_last[no] = at if first else max(d.rpdo_last[no], at)
                 if first:
                     self._cond.notify_all()
             if pdo not in d.rpdo_pending:
