@@ -61,7 +61,8 @@ class Rig:
         return self.update.chain
 
     def readings(self, fresh_arm: bool = True, conditions: dict[FaultCause, Any] | None = None,
-                 overrun: tuple[int, int] | None = None, calibrating: bool = False) -> Readings:
+                 overrun: tuple[int, int] | None = None, calibrating: bool = False,
+                 base_read: bool = True) -> Readings:
         q = np.array([0.0, -1.2, 1.5, -1.9, -1.57, 0.0])
         r = self.chain.model.fk_base(np.concatenate((q, np.zeros(3))), "sensor").rotation
         raw = self.chain.wrench.gravity_wrench(r)
@@ -71,7 +72,8 @@ class Rig:
             self.controller_time += DT
         arm = ArmState(q, np.zeros(6), self.controller_time, 2, 1)
         return Readings(self.index, self.t, DT, arm, Wrench(raw[:3], raw[3:], self.t, self.seq),
-                        Odometry(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.t), self.inputs,
+                        Odometry(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.t) if base_read else None,
+                        self.inputs,
                         conditions or {}, overrun, 0 if overrun is None else overrun[0],
                         calibrating=calibrating)
 
@@ -198,6 +200,24 @@ def test_a_tare_runs_while_disarmed_and_refuses_enable_until_done() -> None:
     assert reply.error is not None and "tare is in progress" in str(reply.error)
     for _ in range(5):
         r.step()
+    r.enable()
+    assert r.state.safety.armed
+
+
+def test_a_tare_finishes_while_the_base_is_not_read_and_then_enable_goes_on() -> None:
+    """A faulted drive (or a lost base link) leaves no odometry: the tare still runs on
+    the arm's pose and the sensor's samples, so the enable that resets the drive is not
+    refused for good by a tare that can never end."""
+    r = rig()
+    drive = {FaultCause.DRIVE_FAULT: {"wheel": "FL"}}
+    r.step(base_read=False, conditions=drive)
+    r.step([Tare()], base_read=False, conditions=drive)
+    n = r.update.cfg.sensor.wrench.tare_samples
+    for _ in range(n + 5):
+        cmds = r.step(base_read=False, conditions=drive)
+        assert cmds.result is None and cmds.qd_arm is None and cmds.twist is None
+    assert r.state.chain.wrench.tare_left == 0  # the tare finished
+    r.step()  # the drive reset by the base's enable: read again
     r.enable()
     assert r.state.safety.armed
 

@@ -262,6 +262,19 @@ class Update:
             s = s._replace(chain=chain, last=result)
             if result.fault is not None:
                 conditions.setdefault(result.fault, dict(result.fault_details))
+        elif arm is not None and r.wrench is not None and not s.safety.armed:
+            # the base not read (a faulted drive, its link lost) while disarmed: the
+            # sensor's part of the chain still runs, with the base at rest at the origin
+            # (the wrench's processing needs only the arm's pose in the base's frame),
+            # so a tare finishes (enable waits for it, and a faulted drive is reset only
+            # by an enable) and the sensor's conditions are still seen.  No result: the
+            # base's motion is not measured.
+            odom = Odometry(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, r.now)
+            chain, idle = self.chain.cycle(
+                s.chain, ChainReadings(arm, r.wrench, odom, r.dt, False, held), r.now)
+            s = s._replace(chain=chain)
+            if idle.fault is not None:
+                conditions.setdefault(idle.fault, dict(idle.fault_details))
         safety, stop_now, sev = sm.observe(s.safety, conditions)
         events.extend(sev)
         stop = stop or stop_now
