@@ -119,3 +119,30 @@ def test_a_non_positive_duration_is_refused_naming_the_flag(
         flag: str, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "loop", "--telemetry", flag, "0"]) != 0
     assert f"{flag} 0: must be > 0" in capsys.readouterr().err
+
+
+def test_bench_startup_bins_misses_from_each_event_and_finds_when_they_settle() -> None:
+    """`mmctl bench startup`'s figures from a made-up run: 500 Hz, misses only in the
+    first second after the enable; steady (the 2 s before the fault) without any."""
+    import argparse
+
+    import numpy as np
+
+    from mmctl.bench.startup import _figures
+
+    period = 2_000_000
+    deadline = np.arange(0, 30 * 500) * period  # 30 s of cycles
+    missed = np.zeros_like(deadline)
+    at = {"start": 0, "enable": 10 * 10**9, "fault": 20 * 10**9, "re-enable": 22 * 10**9,
+          "end": 30 * 10**9}
+    first_second = (deadline >= at["enable"]) & (deadline < at["enable"] + 10**9)
+    missed[first_second & (np.arange(len(deadline)) % 2 == 0)] = 1  # every other cycle
+    args = argparse.Namespace(bin=0.5, steady=2.0, after=8.0, fault="drive_fault")
+    out = _figures(deadline, missed, at, args, faults=1)
+    assert out["steady_pct"] == 0.0 and out["settled_bound_pct"] == 0.5
+    enable = out["events"]["enable"]
+    assert [b["miss_pct"] for b in enable["bins"][:3]] == [
+        round(100 * 125 / 375, 2), round(100 * 125 / 375, 2), 0.0]
+    assert enable["settled_after_s"] == 1.0
+    assert out["events"]["start"]["settled_after_s"] == 0.0
+    assert out["events"]["re-enable"]["first_2s_pct"] == 0.0

@@ -48,6 +48,8 @@ GROUPS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("idk", "mmctl.bench.idk", "time the IDK strategies vs the paper's explicit inverse"),
         ("loop", "mmctl.bench.loop", "500 Hz loop timing vs a time.sleep loop"),
         ("soak", "mmctl.bench.soak", "soak the daemon: pushes, floods, faults; growth and verdict"),
+        ("startup", "mmctl.bench.startup",
+         "misses in short bins after start-up, enable and a fault's re-enable"),
         ("caps", "mmctl.bench.caps", "hard pushes on the simulated plant: E_K and speeds vs caps"),
     ]),
     "probe": ("bring-up probes for one device", [

@@ -119,8 +119,6 @@ def _figures(snap: Any, step_us: Any) -> dict[str, float | int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
-
     from mmctl.runtime.client import load
     from mmctl.runtime.logging import setup_logging
     from mmctl.runtime.pmqos import MAX_US
@@ -143,27 +141,8 @@ def run(args: argparse.Namespace) -> int:
                          f"or 0..{MAX_US} us")
     cfg: Any = load(args.config)
     n = int(args.seconds * cfg.loop.rate_hz) + 2000
-    tmp = tempfile.mkdtemp(prefix="mmctl-bench-")  # its own simulated robot: never another's
-    cfg = dataclasses.replace(
-        cfg,
-        arm=dataclasses.replace(cfg.arm, host=args.host),
-        sensor=dataclasses.replace(cfg.sensor, can=dataclasses.replace(
-            cfg.sensor.can, interface="socketcand", host=args.host)),
-        base=dataclasses.replace(cfg.base, canopen=dataclasses.replace(
-            cfg.base.canopen, interface="socketcand", host=args.host)),
-        loop=dataclasses.replace(cfg.loop, timing_samples=n, max_consecutive_misses=10**9,
-                                 max_total_misses=10**9,
-                                 rt_priority=(cfg.loop.rt_priority if args.rt_priority is None
-                                              else args.rt_priority),
-                                 cpu_affinity=(cfg.loop.cpu_affinity if args.cpu_affinity is None
-                                               else args.cpu_affinity),
-                                 cpu_dma_latency=(cfg.loop.cpu_dma_latency
-                                                  if args.cpu_dma_latency is None
-                                                  else args.cpu_dma_latency)),
-        sim=dataclasses.replace(cfg.sim, enabled=True, human=True, auto_enable=False,
-                                host=args.host, socket_path=f"{tmp}/sim.sock"),
-    )
-    with _stdout_to_stderr():  # logs (ours and the fake UR process's) stay off stdout
+    cfg = bench_config(cfg, args, n)
+    with stdout_to_stderr():  # logs (ours and the fake UR process's) stay off stdout
         setup_logging("warning", stream=sys.stderr)
         result = _measure(cfg, args, n)
     result["targets"] = TARGETS
@@ -174,8 +153,38 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def bench_config(cfg: Any, args: argparse.Namespace, samples: int) -> Any:
+    """``cfg`` moved onto the bench's own simulated robot (``args.host``, a temporary
+    directory: never another's), CAN over socketcand, a timing ring of ``samples``
+    cycles, no miss budget (a bench measures misses, it does not stop on them), and the
+    real-time settings given (``--rt-priority``, ``--cpu-affinity``,
+    ``--cpu-dma-latency``; None: the configuration's)."""
+    import dataclasses
+
+    tmp = tempfile.mkdtemp(prefix="mmctl-bench-")
+    host = args.host
+    loop = cfg.loop
+    return dataclasses.replace(
+        cfg,
+        arm=dataclasses.replace(cfg.arm, host=host),
+        sensor=dataclasses.replace(cfg.sensor, can=dataclasses.replace(
+            cfg.sensor.can, interface="socketcand", host=host)),
+        base=dataclasses.replace(cfg.base, canopen=dataclasses.replace(
+            cfg.base.canopen, interface="socketcand", host=host)),
+        loop=dataclasses.replace(
+            loop, timing_samples=samples, max_consecutive_misses=10**9,
+            max_total_misses=10**9,
+            rt_priority=loop.rt_priority if args.rt_priority is None else args.rt_priority,
+            cpu_affinity=loop.cpu_affinity if args.cpu_affinity is None else args.cpu_affinity,
+            cpu_dma_latency=(loop.cpu_dma_latency if args.cpu_dma_latency is None
+                             else args.cpu_dma_latency)),
+        sim=dataclasses.replace(cfg.sim, enabled=True, human=True, auto_enable=False,
+                                host=host, socket_path=f"{tmp}/sim.sock"),
+    )
+
+
 @contextlib.contextmanager
-def _stdout_to_stderr() -> Iterator[None]:
+def stdout_to_stderr() -> Iterator[None]:
     """Point file descriptor 1 at stderr for the duration (child processes too)."""
     sys.stdout.flush()
     saved = os.dup(1)
