@@ -253,10 +253,9 @@ def _proc_cpu(pid: int | None) -> float:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from mmctl.bench.loop import tare_and_enable
     from mmctl.errors import MmctlError
     from mmctl.runtime.client import load
-    from mmctl.runtime.factory import create_daemon
+    from mmctl.runtime.factory import create_daemon, open_sim
     from mmctl.runtime.ipc import request
     from mmctl.runtime.logging import setup_logging
 
@@ -280,7 +279,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                                 host=args.host, socket_path=str(tmp / "sim.sock")),
     )
     path = tmp / "mmctl.sock"
-    daemon = create_daemon(cfg, socket_path=path)
+    sim = open_sim(cfg)  # the caller's, never the daemon's: before it connects
+    assert sim is not None
+    daemon = create_daemon(cfg, socket_path=path, sim=sim)
     out: dict[str, Any] = {"socket_process": True,
                            "rt_priority": args.rt_priority, "loop_cpu": args.loop_cpu,
                            "sim_priority": args.sim_priority, "client_nice": args.client_nice,
@@ -295,7 +296,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if args.sim_priority:  # the simulated devices answer like hardware: whatever the load
             assert daemon.sim is not None and daemon.sim.pid is not None
             out["sim_processes"] = _realtime(daemon.sim.pid, args.sim_priority)
-        tare_and_enable(daemon)
+        daemon.tare_and_enable(30.0)
         assert daemon.sim is not None
         daemon.sim.start_human()
         time.sleep(1.0)
@@ -337,7 +338,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if srv is not None and hasattr(srv, "counters"):
             out["server"] = dict(srv.counters)
     finally:
-        daemon.shutdown()
+        try:
+            daemon.shutdown()
+        finally:
+            sim.close()
         for p in held:
             p.kill()
             p.wait()

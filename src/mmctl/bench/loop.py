@@ -23,12 +23,9 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from mmctl.errors import MmctlError
-
-if TYPE_CHECKING:
-    from mmctl.runtime.daemon import Daemon
 
 #: issue 15's targets on this 2-core machine: loop figures, the daemon's control step
 #: against the same step back to back (``idk_step``), and force to command
@@ -36,22 +33,6 @@ TARGETS = {"compute_p99_us": 300.0, "latency_p99_us": 50.0, "miss_rate": 0.0005,
            "step_ratio_p50": 1.25, "force_to_command_p99_us": 2000.0}
 
 
-
-def tare_and_enable(daemon: Daemon, timeout: float = 30.0) -> None:
-    """Tare (hands off), then arm the started daemon, retrying ``enable`` for
-    ``timeout`` [s] while a condition flickers at start-up."""
-    daemon.call("tare")
-    while daemon.core.taring:
-        time.sleep(0.01)
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            daemon.call("enable")
-            return
-        except MmctlError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.1)
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=10.0,
@@ -222,7 +203,7 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         daemon.start()
         lat = daemon.cpu_latency
         result["cpu_dma_latency_us"] = lat.us if lat is not None and lat.held else None
-        tare_and_enable(daemon)
+        daemon.tare_and_enable(30.0)
         sim.start_human()
         time.sleep(1.0)  # warm-up
         result["loop"], result["sleep_baseline"] = _interleaved(daemon, wait, args.seconds,

@@ -72,7 +72,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _measure(cfg: Any, args: argparse.Namespace) -> dict[str, Any]:
-    from mmctl.bench.loop import tare_and_enable
     from mmctl.runtime.factory import create_daemon, open_sim
     from mmctl.telemetry.service import TelemetryService
 
@@ -86,7 +85,7 @@ def _measure(cfg: Any, args: argparse.Namespace) -> dict[str, Any]:
         daemon.start()
         at["start"] = daemon.runtime.t0_ns
         time.sleep(args.after)
-        tare_and_enable(daemon)
+        daemon.tare_and_enable(30.0)
         at["enable"] = time.perf_counter_ns()
         sim.start_human()
         time.sleep(args.after)
@@ -98,7 +97,7 @@ def _measure(cfg: Any, args: argparse.Namespace) -> dict[str, Any]:
         if daemon.safety.armed:
             raise MmctlError(f"the daemon did not fault on {args.fault!r} within 10 s")
         sim.call("fault", name=args.fault, on=False)
-        tare_and_enable(daemon)
+        daemon.tare_and_enable(30.0)
         at["re-enable"] = time.perf_counter_ns()
         time.sleep(args.after)
         at["end"] = time.perf_counter_ns()

@@ -81,18 +81,13 @@ def _run(args: argparse.Namespace) -> int:
 
         input_log = InputLog(args.record_inputs, cfg)
         input_log.open()  # before anything starts: a folder in use is one line
-    from mmctl.runtime.factory import wants_sim_process
+    from mmctl.runtime.factory import sim_link
 
     # the simulated robot is this command's, never the daemon's: opened before the
     # daemon connects to it, closed after the daemon stopped (on the robot: none)
-    sim = None
-    daemon = None
+    sim = sim_link(cfg, Path(args.sim_log) if args.sim_log else None)
     view = None
     try:
-        if wants_sim_process(cfg):
-            from mmctl.runtime.sim_link import SimLink
-
-            sim = SimLink(cfg, log_dir=Path(args.sim_log) if args.sim_log else None)
         daemon = create_daemon(cfg, socket_path, sim=sim, telemetry=telemetry,
                                input_log=input_log)
         daemon.install_signals()  # a signal while the simulation starts is a stop too
@@ -101,7 +96,7 @@ def _run(args: argparse.Namespace) -> int:
 
             view = LiveView(daemon.live, stderr=True).start()  # before any child: theirs too
         if sim is not None:
-            sim.start(lambda: daemon is not None and daemon.stopping)
+            sim.start(lambda: daemon.stopping)
         on_ready = auto_enable if sim is not None and cfg.sim.auto_enable else None
         return daemon.run(duration=args.duration, install_signals=False, on_ready=on_ready)
     finally:
@@ -117,27 +112,14 @@ def auto_enable(daemon: Daemon) -> None:
     """Simulation only, once the daemon is ready: tare, arm, and let the simulated
     person start (within sim.ready_timeout: a starved machine's tare takes its 100
     samples slowly).  A failure is logged, not fatal: the operator can `mmctl enable`."""
-    import time
-
     import structlog
 
     from mmctl.errors import MmctlError
 
     log = structlog.get_logger("mmctl.daemon")
     cfg = daemon.cfg
-    deadline = time.monotonic() + cfg.sim.ready_timeout
     try:
-        daemon.call("tare")
-        while daemon.core.taring and time.monotonic() < deadline and daemon.loop.running:
-            time.sleep(0.01)
-        while True:  # a condition may flicker while the fakes settle: retry a while
-            try:
-                daemon.call("enable")
-                break
-            except MmctlError:
-                if time.monotonic() > deadline or daemon.stopping:
-                    raise
-                time.sleep(0.1)
+        daemon.tare_and_enable(cfg.sim.ready_timeout)
     except MmctlError as exc:
         log.warning("auto_enable_failed", error=str(exc))
         return

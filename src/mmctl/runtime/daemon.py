@@ -313,6 +313,24 @@ class Daemon:
             self.shutdown()
         return 1 if self.loop.error is not None else 0
 
+    def tare_and_enable(self, timeout: float) -> None:
+        """Tare (hands off), then arm, within ``timeout`` [s]: ``enable`` is retried
+        while a condition flickers (fakes settling at start-up); MmctlError when it is
+        still refused at the end, or the daemon stops meanwhile (`mmctl run`'s
+        auto-enable on the simulated robot, the benchmarks)."""
+        deadline = time.monotonic() + timeout
+        self.call("tare")
+        while self.core.taring and time.monotonic() < deadline and self.loop.running:
+            time.sleep(0.01)
+        while True:
+            try:
+                self.call("enable")
+                return
+            except MmctlError:
+                if time.monotonic() > deadline or self.stopping:
+                    raise
+                time.sleep(0.1)
+
     def request_stop(self, reason: str = "requested") -> None:
         """Ask :meth:`run` to shut down (any thread, signal handler)."""
         self.stop_reason = self.stop_reason or reason

@@ -12,7 +12,6 @@ cycle by cycle).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -39,27 +38,28 @@ def wants_sim_process(cfg: Config) -> bool:
     return cfg.sim.enabled and not in_process_sim(cfg)
 
 
-def open_sim(cfg: Config, log_dir: Path | None = None,
-             should_stop: Callable[[], bool] = lambda: False) -> SimLink | None:
-    """The simulated robot's process for ``cfg``, attached to or started (its fakes
-    listening: the daemon can connect), or None when ``cfg`` has none
-    (:func:`wants_sim_process`).  ``should_stop``: polled while it starts (a signal);
-    then the link is closed again and None returned.  log_dir: where a started
-    simulation writes its fakes' command logs when it stops.  Close it (``close()``)
-    after the daemon stopped."""
+def sim_link(cfg: Config, log_dir: Path | None = None) -> SimLink | None:
+    """The link to the simulated robot's process for ``cfg`` (not started yet), or None
+    when ``cfg`` has none (:func:`wants_sim_process`).  log_dir: where a simulation the
+    link starts writes its fakes' command logs when it stops."""
     if not wants_sim_process(cfg):
         return None
     from mmctl.runtime.sim_link import SimLink
 
-    sim = SimLink(cfg, log_dir=log_dir)
+    return SimLink(cfg, log_dir=log_dir)
+
+
+def open_sim(cfg: Config) -> SimLink | None:
+    """:func:`sim_link`, attached to or started (its fakes listening: the daemon can
+    connect).  Close it (``close()``) after the daemon stopped."""
+    sim = sim_link(cfg)
+    if sim is None:
+        return None
     try:
-        sim.start(should_stop)
+        sim.start()
     except BaseException:
         sim.close()
         raise
-    if should_stop():
-        sim.close()
-        return None
     return sim
 
 
