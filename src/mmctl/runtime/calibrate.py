@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Mapping
+from concurrent.futures import Future
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -81,7 +82,12 @@ class Calibrations:
         if action == "status":
             return self.report()
         if action == "abort":
-            return self.rt.on_loop(self._abort)
+            report, disarmed = self.rt.on_loop(self._abort)
+            if disarmed is not None and self.rt.loop.running:
+                # the reply once the update has taken the Disable: a status asked right
+                # after the abort says disarmed
+                disarmed.result(self.cfg.daemon.command_timeout)
+            return report
         raise MmctlError(f"calibrate: action {action!r}: must be 'start', 'status' or 'abort'")
 
     def _request(self, poses: object) -> dict[str, object]:
@@ -160,15 +166,17 @@ class Calibrations:
         return {"started": True, "poses": len(plan.poses), "estimated_s": round(seconds, 1),
                 "plan": [[round(float(x), 5) for x in p] for p in plan.poses]}
 
-    def _abort(self) -> dict[str, object]:
-        """Loop thread: the operator's abort: stop the robot (disarmed)."""
+    def _abort(self) -> tuple[dict[str, object], Future[object] | None]:
+        """Loop thread: the operator's abort: stop the robot (disarmed); the report and
+        the Disable's reply (None: nothing was running)."""
         c = self.rt.calibration
+        disarmed = None
         if c is not None and c.running:
             c.abort("aborted by the operator", self.rt.core.clock())
-            self._stop(c)
-        return self.report()
+            disarmed = self._stop(c)
+        return self.report(), disarmed
 
-    def _stop(self, c: ToolCalibration) -> None:
+    def _stop(self, c: ToolCalibration) -> Future[object]:
         """Loop thread: an aborted routine: speedStop and zero base velocity at once,
         and a :class:`~mmctl.control.update.Disable` into the loop's inbox, so the
         update disarms (as the operator's ``disable`` does; never a state changed
@@ -176,10 +184,11 @@ class Calibrations:
         update, which takes the Disable in the same cycle; an abort the routine finds
         during a cycle is disarmed by the next one, whose update sends no motion."""
         self.rt.send_stop()
-        self.rt.submit(Disable())
+        disarmed = self.rt.submit(Disable())
         c.closed = True
         log.warning("calibration_aborted", reason=c.error, pose=c.index + 1,
                     weighed=len(c.samples))
+        return disarmed
 
     def report(self) -> dict[str, object]:
         """Progress of the last calibration; once done, its fit and what it weighed."""
