@@ -221,3 +221,43 @@ def test_only_the_switch_user_presses_and_the_noise_is_the_users() -> None:
     ref = np.array([a.noise for a in logs["locomotion"][:n]])
     for strategy in ("switch", "min-energy"):
         np.testing.assert_array_equal(np.array([a.noise for a in logs[strategy][:n]]), ref)
+
+
+class _LowForceLimit(_Hold):
+    """A study variant whose wrench limit is below the users' push: the first push is a
+    ``wrench_limit`` fault."""
+
+    def __init__(self, limit: float) -> None:
+        super().__init__(0.0)
+        self.limit = limit
+
+    def config(self, cfg):  # type: ignore[no-untyped-def]
+        from dataclasses import replace
+
+        w = replace(cfg.sensor.wrench, force_limit=self.limit)
+        return replace(cfg, sensor=replace(cfg.sensor, wrench=w))
+
+    def user(self, seed: int, index: int):  # type: ignore[no-untyped-def]
+        return draw_user(seed, index)
+
+
+def test_the_study_runs_the_daemons_update_a_fault_stops_the_robot_for_good() -> None:
+    """The study runs the daemon's whole update, not only the control chain: a fault
+    (a push beyond the wrench limit) goes through the safety state machine, which
+    latches it and stops the robot; it stays at rest (nobody re-enables) while the
+    person goes on pushing, and the task is not finished."""
+    study = StudyConfig.make(quick=True, users=1, seed=5, t_max=4.0)
+    log: list[tuple[HandleObservation, HumanAction]] = []
+    ex, _, _ = run_execution(study, 0, "min-energy", variant=_LowForceLimit(6.0),
+                             observe=lambda o, a: log.append((o, a)))
+    assert ex.faults > 0 and not ex.completed and ex.stopped == "wrench_limit"
+    forces = np.array([np.linalg.norm(a.force) for _, a in log])
+    first = int(np.argmax(forces > 6.0))  # the person's push crosses the limit here
+    assert forces.max() > 6.0 and first > 0
+    # from shortly after the fault to the end the handle does not move, while pushed
+    later = np.array([o.position for o, _ in log[first + 100:]])
+    assert len(later) > 500 and forces[first + 100:].min() > 6.0
+    assert np.abs(later - later[0]).max() < 1e-6
+    # the same run with the limit above the push moves the handle on, never stopped
+    free, _, _ = run_execution(study, 0, "min-energy", variant=_LowForceLimit(150.0))
+    assert free.faults == 0 and free.v > 0.01 and free.stopped == ""

@@ -81,7 +81,7 @@ def test_csv_is_sorted_and_stable() -> None:
     shuffled = [ex[i] for i in (4, 0, 8, 2, 7, 1, 3, 6, 5)]
     text = results_csv(ex)
     assert text.splitlines()[0] == ("user,strategy,E,F_h,v,x_f,T_f,x_f_hold,E_base,F_max,"
-                                    "switches,completed,faults")
+                                    "switches,completed,faults,stopped")
     rows = [ln.split(",")[:2] for ln in text.splitlines()[1:]]
     assert rows[:3] == [["0", "locomotion"], ["0", "switch"], ["0", "min-energy"]]
     assert results_csv(sorted(shuffled, key=lambda e: (e.user, STRATS.index(e.strategy)))) == text

@@ -1,8 +1,9 @@
 """Reproduce the paper's peg-in-hole study in simulation.
 
-Every simulated user does the task with every approach, through the control cycle
-the daemon runs (the wrench pipeline from the sensor's reading, admittance, IDK,
-limits; T = 2 ms) on the simulated robot's plant, faster than real time and in
+Every simulated user does the task with every approach, through the update the
+daemon's loop runs (tare and enable as operator commands, the safety state machine,
+the wrench pipeline from the sensor's reading, admittance, IDK, limits; T = 2 ms) on
+the simulated robot's plant, faster than real time and in
 parallel processes.
 Prints the median table next to the paper's and the significance table (Friedman,
 then Wilcoxon signed-rank with Holm-Bonferroni correction); writes results.csv,

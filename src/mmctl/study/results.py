@@ -81,7 +81,9 @@ class Execution(NamedTuple):
     the last insertion before the time limit (otherwise T_f is the limit); x_f_hold
     [m]: x_f at the end of the end-of-trial hold (the peg kept in the last hole
     ``hold_time`` after T_f; = x_f when unfinished); faults:
-    cycles on which the controller reported a fault; limited: fraction of the samples
+    cycles on which the controller reported a fault; stopped: the fault the safety
+    state machine latched and stopped the robot for (nobody re-enables in a study:
+    the execution then ends unfinished), "" when none; limited: fraction of the samples
     k = 1..N on which a limit bound the controller's command (``StepOutputs.limit``
     not empty: any of :data:`mmctl.control.limits.LIMIT_NAMES`; the sweep reports it).
     """
@@ -101,6 +103,7 @@ class Execution(NamedTuple):
     series: Series
     limited: float = 0.0
     x_f_hold: float = math.nan
+    stopped: str = ""
 
     def metric(self, name: str) -> float:
         """One of :data:`METRICS` by name."""
@@ -110,11 +113,12 @@ class Execution(NamedTuple):
 #: results.csv columns, in order.
 CSV_COLUMNS: tuple[str, ...] = (
     "user", "strategy", *REPORT_METRICS, "E_base", "F_max", "switches", "completed",
-    "faults",
+    "faults", "stopped",
 )
 
 
 def csv_row(e: Execution) -> list[str]:
     """The execution as results.csv fields (floats with 10 significant digits)."""
     fl = [format(e.metric(m), ".10g") for m in (*REPORT_METRICS, "E_base", "F_max")]
-    return [str(e.user), e.strategy, *fl, str(e.switches), str(int(e.completed)), str(e.faults)]
+    return [str(e.user), e.strategy, *fl, str(e.switches), str(int(e.completed)), str(e.faults),
+            e.stopped]

@@ -1,7 +1,8 @@
 """Run the study: every user with every approach through the robot's control cycle.
 
-Each execution (user u, approach s) runs :meth:`mmctl.control.cycle.CycleChain.cycle`,
-the cycle the daemon's loop runs, on the simulated robot's plant
+Each execution (user u, approach s) runs :class:`mmctl.control.update.Update`, the
+pure update the daemon's loop runs (safety state machine, base divider, operator's
+commands as inbox values, the control chain), on the simulated robot's plant
 (:class:`mmctl.sim.plant.Plant`, the fakes' joints and wheels) in simulated time.
 First, hands off the handle, the tare the operator runs before enabling
 (``sensor.wrench.tare_samples`` cycles).  Then, at t = kT (T = ``study.dt``), k = 0, 1, ...:
@@ -42,8 +43,21 @@ import numpy as np
 
 from mmctl.config import Config
 from mmctl.config.control import Mode
-from mmctl.control.cycle import CycleChain, Readings
+from mmctl.control.cycle import CycleChain
 from mmctl.control.metrics import trial_metrics
+from mmctl.control.update import (
+    BeginEnable,
+    Command,
+    Commands,
+    EnableCheck,
+    EnableFinish,
+    Readings,
+    Reply,
+    SetSwitch,
+    Tare,
+    Update,
+    UpdateState,
+)
 from mmctl.errors import ConfigError
 from mmctl.model import RobotModel
 from mmctl.model.planar import base_to_world, rot_z
@@ -158,15 +172,11 @@ def run_execution(
     p_des = model.update(np.concatenate((np.asarray(cfg.robot.q_des), np.zeros(3))),
                          inertia=False).p_base
     dt = chain.dt
-    clock = _Clock(plant, sensor, model, dt)
-    # hands off the handle: the tare the operator runs before the first enable
-    state = chain.initial_state()
-    state = state._replace(wrench=chain.wrench.start_tare(state.wrench))
-    tare_cycles = 0
-    while state.wrench.tare_left > 0:
-        state, _out = chain.cycle(state, clock.readings(_NO_FORCE, active=False), clock.t)
-        plant.step(_Z6, _Z3, dt)
-        tare_cycles += 1
+    clock = _Clock(plant, sensor, model, dt, _held_inputs(cfg))
+    update = Update(cfg, chain)
+    # hands off the handle: the tare and the enable the operator runs before the first
+    # push, as commands into the update's inbox
+    state, tare_cycles = _tare_and_enable(update, clock, plant)
     t0 = clock.t
     n_max = int(study.t_max / dt) + 1
     # after T_f the end-of-trial hold: the person keeps the peg in, the robot runs on
@@ -182,6 +192,7 @@ def run_execution(
     k_done = k_last = n_max - 1
     p_final = p_hold = p_des
     finished = False
+    twist = _Z3  # what the drives hold between the twists the update sends
     for k in range(n_all):
         if not finished and k >= n_max:  # the time limit, the task unfinished
             break
@@ -194,19 +205,22 @@ def run_execution(
         act = human.update(obs)
         if observe is not None:
             observe(obs, act)
-        if act.switch_request is not None:  # only the switch strategy uses the sub-mode
-            ctl = chain.controller.set_switch(state.controller, act.switch_request)
-            state = state._replace(controller=ctl)
+        inbox: list[Command] = []
+        if act.switch_request is not None:  # only the switch strategy has the button
+            inbox.append(SetSwitch(act.switch_request))
             switches += 1
         fw = np.asarray(act.force, dtype=float)
-        state, out = chain.cycle(state, clock.readings(fw, active=True, q=q, qd=qd), clock.t)
+        state, cmds, events = update(state, clock.readings(fw, q=q, qd=qd), inbox)
+        _raise_refused(events)
+        out = cmds.result
+        assert out is not None  # every device is read in the study
         energy[k] = out.energy.total
         energy_base[k] = out.energy.base
         force[k] = math.sqrt(float(fw @ fw))
         speed[k] = math.sqrt(float(v_b @ v_b))
         dp = kin.p_base - p_des
         deviation[k] = math.sqrt(float(dp @ dp))
-        ctl_state = state.controller
+        ctl_state = state.chain.controller
         loco[k] = 1 if ctl_state.mode is Mode.SWITCH and ctl_state.target == "locomotion" else 0
         faults += 1 if out.fault is not None else 0
         limited[k] = out.out is not None and out.out.limit != ""
@@ -217,7 +231,8 @@ def run_execution(
             p_final = kin.p_base
         if act.phase is Phase.DONE:  # the end of the hold
             break
-        plant.step(out.qd_arm, out.twist, dt)
+        qd_arm, twist = _drive(cmds, twist)
+        plant.step(qd_arm, twist, dt)
     completed = human.finish_time is not None
     if not completed:
         p_final = model.update(plant.state().q, inertia=False).p_base
@@ -239,7 +254,8 @@ def run_execution(
     ex = Execution(user, strategy, m.E_mean, m.F_mean, m.v_mean, m.x_f, m.T_f,
                    float(energy_base[sl].mean()), float(force[sl].max()), switches, completed,
                    faults, series, float(limited[sl].mean()),
-                   x_f_hold=math.sqrt(float(dh @ dh)))
+                   x_f_hold=math.sqrt(float(dh @ dh)),
+                   stopped=latched.value if (latched := state.safety.latched) else "")
     return ex, time.process_time() - cpu0, tare_cycles + k_last + 1
 
 
@@ -248,18 +264,69 @@ _Z6 = np.zeros(6)
 _NO_FORCE = np.zeros(3)
 
 
+def _held_inputs(cfg: Config) -> int:
+    """The arm's digital inputs with the handle's enabling switch held (the person holds
+    the handle throughout; no switch configured: none)."""
+    e = cfg.enabling
+    return 0 if e.active_low else sum(1 << i for i in e.inputs)
+
+
+def _tare_and_enable(update: Update, clock: _Clock, plant: Plant) -> tuple[UpdateState, int]:
+    """Hands off the handle: the operator's tare, then the enable (the study's base
+    has no drives to enable: its enable succeeds), both through the update's inbox.
+    Returns the armed state and the cycles it took."""
+    dt = update.chain.dt
+    state = update.initial_state()
+    inbox: list[Command] = [Tare()]
+    cycles = 0
+    while True:
+        state, _cmds, events = update(state, clock.readings(_NO_FORCE), inbox)
+        _raise_refused(events)
+        plant.step(_Z6, _Z3, dt)
+        cycles += 1
+        if state.safety.armed:
+            return state, cycles
+        inbox = []
+        if state.chain.wrench.tare_left == 0:
+            inbox = [BeginEnable(), EnableCheck(), EnableFinish()]
+
+
+def _raise_refused(events: tuple[object, ...]) -> None:
+    """An operator's command the update refused (never in a study that is set up right:
+    a configuration error)."""
+    for e in events:
+        if isinstance(e, Reply) and e.error is not None:
+            raise ConfigError("study", "(the control configuration)",
+                              f"the update refused the operator's command: {e.error}")
+
+
+def _drive(cmds: Commands, twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What the plant's joints and wheels follow this period: the speedJ (none: at rest,
+    as speedStop brings it), and the base twist sent (none: the drives hold the last
+    target, as they do between the divided sends; the stop: zero)."""
+    if cmds.stop:
+        return _Z6, _Z3
+    qd_arm = _Z6 if cmds.qd_arm is None else cmds.qd_arm
+    if cmds.twist is not None:
+        twist = np.asarray(cmds.twist, dtype=float)
+    return qd_arm, twist
+
+
 class _Clock:
     """The study's simulated time and the devices' readings at it: the arm's joints as
-    the arm reports them, the base as its wheel encoders report it (the plant's
-    odometry: no slip), and the sensor's reading of the person's force (bias and handle
-    weight included) in the sensor's actual orientation, one fresh sample per cycle."""
+    the arm reports them (with its digital inputs: the enabling switch held), the base
+    as its wheel encoders report it (the plant's odometry: no slip), and the sensor's
+    reading of the person's force (bias and handle weight included) in the sensor's
+    actual orientation, one fresh sample per cycle."""
 
-    def __init__(self, plant: Plant, sensor: HandleSensor, model: RobotModel, dt: float):
+    def __init__(self, plant: Plant, sensor: HandleSensor, model: RobotModel, dt: float,
+                 inputs: int = 0):
         self.plant, self.sensor, self.model, self.dt = plant, sensor, model, dt
+        self.inputs = inputs
         self.t = 0.0
         self.sequence = 0
 
-    def readings(self, force_world: np.ndarray, active: bool, q: np.ndarray | None = None,
+    def readings(self, force_world: np.ndarray, q: np.ndarray | None = None,
                  qd: np.ndarray | None = None) -> Readings:
         """The readings of the cycle that starts now, then the clock moves one period.
 
@@ -270,15 +337,16 @@ class _Clock:
         if q is None or qd is None:
             q, qd = self.plant.state()
         odo = self.plant.odometry()
+        index = self.sequence
         self.t += self.dt
         self.sequence += 1
         r_sensor = self.model.fk_base(q, "sensor").rotation
         w = self.sensor.measure(force_world, float(q[8]), r_sensor)
         t = self.t
         (x, y, yaw), (vx, vy, wz) = odo.pose, odo.twist
-        return Readings(ArmState(q[:6], qd[:6], t, 2, 1),
+        return Readings(index, t, self.dt, ArmState(q[:6], qd[:6], t, 2, 1),
                         Wrench(w[:3], w[3:], t, self.sequence),
-                        Odometry(x, y, yaw, vx, vy, wz, t), self.dt, active)
+                        Odometry(x, y, yaw, vx, vy, wz, t), self.inputs)
 
 
 def _work(job: tuple[StudyConfig, int, str]) -> tuple[Execution, float, int]:
