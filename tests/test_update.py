@@ -22,6 +22,7 @@ from mmctl.control.update import (
     EnableCheck,
     EnableFinish,
     Readings,
+    Release,
     Reply,
     SetMode,
     SetSwitch,
@@ -62,7 +63,7 @@ class Rig:
 
     def readings(self, fresh_arm: bool = True, conditions: dict[FaultCause, Any] | None = None,
                  overrun: tuple[int, int] | None = None, calibrating: bool = False,
-                 base_read: bool = True) -> Readings:
+                 base_read: bool = True, arm_busy: bool = False) -> Readings:
         q = np.array([0.0, -1.2, 1.5, -1.9, -1.57, 0.0])
         r = self.chain.model.fk_base(np.concatenate((q, np.zeros(3))), "sensor").rotation
         raw = self.chain.wrench.gravity_wrench(r)
@@ -75,7 +76,7 @@ class Rig:
                         Odometry(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.t) if base_read else None,
                         self.inputs,
                         conditions or {}, overrun, 0 if overrun is None else overrun[0],
-                        calibrating=calibrating)
+                        arm_busy=arm_busy, calibrating=calibrating)
 
     def step(self, inbox: list[Command] | None = None, **kw: Any) -> Commands:
         self.t += DT
@@ -88,13 +89,14 @@ class Rig:
         return [e for e in self.events if isinstance(e, Reply)]
 
     def enable(self) -> None:
-        """The enable's three steps as the runtime sends them (no reconnect needed)."""
-        for cmd in (BeginEnable(), EnableCheck(), EnableFinish()):
+        """The enable's steps as the runtime sends them (no reconnect needed; the base's
+        lease given back with the last)."""
+        for cmds in ([BeginEnable()], [EnableCheck()], [Release("base"), EnableFinish()]):
             self.events.clear()
-            self.step([cmd])
-            (reply,) = self.replies()
-            if reply.error is not None:
-                raise reply.error
+            self.step(list(cmds))
+            for reply in self.replies():
+                if reply.error is not None:
+                    raise reply.error
 
 
 def peak_of(cmds: Commands) -> float:
@@ -160,6 +162,40 @@ def test_the_base_failing_its_enable_refuses_with_its_cause_and_stops() -> None:
     (reply,) = r.replies()
     assert isinstance(reply.error, EnableRefused) and reply.error.causes == [FaultCause.DRIVE_FAULT]
     assert cmds.stop and not r.state.safety.armed
+
+
+def test_an_enable_leases_the_links_it_works_on_until_their_release() -> None:
+    """The links an enable's device work holds are the update's state, not flags set
+    from other threads: BeginEnable leases the links to reconnect, EnableCheck the base;
+    each Release gives one back; while the arm is leased no watchdog kick goes out."""
+    r = rig()
+    r.step()
+    assert r.state.leased == frozenset()
+    lost = {FaultCause.SENSOR_LINK: {"device": "sensor"},
+            FaultCause.ARM_DISCONNECTED: {"device": "arm"}}
+    r.step(conditions=lost)
+    r.events.clear()
+    r.step([BeginEnable()], conditions=lost)
+    (reply,) = r.replies()
+    assert reply.value == ("arm", "sensor") and r.state.leased == {"arm", "sensor"}
+    cmds = r.step()
+    assert r.state.leased == {"arm", "sensor"}
+    r.events.clear()
+    cmds = r.step([Release("sensor")], arm_busy=True)
+    assert r.state.leased == {"arm"} and not cmds.kick  # the arm reconnects: left alone
+    r.step([Release("arm")], arm_busy=True)
+    assert r.state.leased == frozenset()
+    r.events.clear()
+    r.step([EnableCheck()])
+    assert r.replies()[0].value is True and r.state.leased == {"base"}
+    r.events.clear()
+    r.step([Release("base"), EnableFinish()])
+    assert [x.value for x in r.replies()] == [None, "armed"]
+    assert r.state.leased == frozenset() and r.state.safety.armed
+    r.events.clear()
+    r.step([Release("wheels")])
+    (reply,) = r.replies()
+    assert isinstance(reply.error, MmctlError) and "must be one of" in str(reply.error)
 
 
 def test_disable_while_armed_sends_the_stop_that_cycle() -> None:

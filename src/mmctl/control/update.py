@@ -96,13 +96,23 @@ class Install(NamedTuple):
 class BeginEnable(NamedTuple):
     """An enable's first step: replies the links to reconnect first (``"arm"``: an arm
     link or program condition present or latched; ``"sensor"``: the sensor's link lost,
-    present or latched), a tuple of names, empty when none."""
+    present or latched), a tuple of names, empty when none; they are leased to the
+    enable (:attr:`UpdateState.leased`) until its :class:`Release`."""
 
 
 class EnableCheck(NamedTuple):
     """An enable's check before the base's own enable: replies False when armed already;
-    refused (EnableRefused) while a condition but the base's is present; else True (the
-    runtime then leaves the base to the enable)."""
+    refused (EnableRefused) while a condition but the base's is present; else True, and
+    the base is leased to the enable (the loop leaves it alone) until its
+    :class:`Release`."""
+
+
+class Release(NamedTuple):
+    """A link an enable leased (:class:`BeginEnable`: the arm's or the sensor's, to
+    reconnect it; :class:`EnableCheck`: the base's, to enable it) is the loop's again:
+    its work ended, whatever its outcome.  The loop reads it again from the next cycle."""
+
+    link: str
 
 
 class EnableFinish(NamedTuple):
@@ -115,7 +125,10 @@ class EnableFinish(NamedTuple):
 
 
 Command = (Disable | SetMode | SetSwitch | SetProfile | Tare | Install | BeginEnable
-           | EnableCheck | EnableFinish)
+           | EnableCheck | Release | EnableFinish)
+
+#: The links an enable may lease (:attr:`UpdateState.leased`).
+LINKS = ("arm", "sensor", "base")
 
 
 # -- readings, commands, events --------------------------------------------------------
@@ -213,6 +226,9 @@ class UpdateState(NamedTuple):
     button: bool = False
     twist_sent: tuple[float, float, float] | None = None
     last: CycleResult | None = None
+    #: the links an enable's device work holds (:data:`LINKS`): the loop neither reads
+    #: them nor sends them commands until their :class:`Release`
+    leased: frozenset[str] = frozenset()
 
 
 class Update:
@@ -427,7 +443,7 @@ class Update:
                     links.append("arm")
                 if FaultCause.SENSOR_LINK in present or sf.latched is FaultCause.SENSOR_LINK:
                     links.append("sensor")
-                return s, tuple(links), False
+                return s._replace(leased=s.leased | set(links)), tuple(links), False
             case EnableCheck():
                 if s.safety.armed:
                     return s, False, False
@@ -440,7 +456,11 @@ class Update:
                 if other:
                     s = s._replace(safety=dataclasses.replace(s.safety, active=other))
                     raise EnableRefused(list(other), other)
-                return s, True, False
+                return s._replace(leased=s.leased | {"base"}), True, False
+            case Release(link=link):
+                if link not in LINKS:
+                    raise MmctlError(f"release: link {link!r}: must be one of {LINKS}")
+                return s._replace(leased=s.leased - {link}), None, False
             case EnableFinish(failure=failure, fault=fault):
                 return self._enable_finish(s, r, conditions, failure, fault, events)
         raise MmctlError(f"unknown command {cmd!r}")  # pragma: no cover
@@ -505,6 +525,7 @@ def _profile(reduced: bool) -> str:
 __all__ = [
     "ARM_RECONNECT_CAUSES",
     "BASE_CAUSES",
+    "LINKS",
     "_Z3",
     "BeginEnable",
     "Changed",
@@ -517,6 +538,7 @@ __all__ = [
     "Event",
     "Install",
     "Readings",
+    "Release",
     "Reply",
     "SetMode",
     "SetProfile",

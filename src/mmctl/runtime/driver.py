@@ -43,6 +43,7 @@ from mmctl.control.update import (
     EnableFinish,
     Install,
     Readings,
+    Release,
     Reply,
     SetMode,
     SetProfile,
@@ -95,8 +96,8 @@ CalibrationCycle = Callable[["ToolCalibration", CycleResult | None, Wrench | Non
                             CycleResult | None]
 
 #: The update's commands a caller may queue (anything else is a :class:`RunOnLoop`).
-COMMAND_TYPES = (BeginEnable, Disable, EnableCheck, EnableFinish, Install, SetMode,
-                 SetProfile, SetSwitch, Tare)
+COMMAND_TYPES = (BeginEnable, Disable, EnableCheck, EnableFinish, Install, Release,
+                 SetMode, SetProfile, SetSwitch, Tare)
 
 
 class RunOnLoop(NamedTuple):
@@ -167,13 +168,6 @@ class LoopRuntime:
         self.last: CycleResult | None = None
         #: the cycle that produced :attr:`last`
         self.last_cycle = 0
-        #: a device whose link the operator's enable is reconnecting (the arm, the
-        #: sensor) or enabling (the base) off the loop thread: the loop leaves it alone
-        #: and counts it as not read.  Set by the loop (the update's reply to the
-        #: enable's step), cleared by the enable when its device work is done.
-        self.arm_busy = False
-        self.sensor_busy = False
-        self.base_busy = False
         #: perf_counter_ns of t = 0 (set when the daemon starts the loop)
         self.t0_ns = 0
         self._status_text = ""
@@ -223,6 +217,23 @@ class LoopRuntime:
             self.notifier.status(text)
 
     # -- the inbox ----------------------------------------------------------------------
+    # a device whose link the operator's enable is reconnecting (the arm, the sensor)
+    # or enabling (the base) off the loop thread: the loop leaves it alone and counts
+    # it as not read.  The update's own state says so (UpdateState.leased: its
+    # BeginEnable and EnableCheck lease a link, the enable's Release gives it back);
+    # no flag crosses threads.
+    @property
+    def arm_busy(self) -> bool:
+        return "arm" in self.ustate.leased
+
+    @property
+    def sensor_busy(self) -> bool:
+        return "sensor" in self.ustate.leased
+
+    @property
+    def base_busy(self) -> bool:
+        return "base" in self.ustate.leased
+
     def submit(self, cmd: Command | RunOnLoop) -> Future[object]:
         """Queue ``cmd`` for the loop's next cycle (the update's inbox)."""
         fut: Future[object] = Future()
@@ -252,7 +263,8 @@ class LoopRuntime:
                 raise IpcError("the control loop is not running")
             if isinstance(cmd, RunOnLoop):
                 return cmd.fn()
-            return self.apply_now(cmd)
+            # a Release is judged on nothing: no fresh read (a scripted device counts it)
+            return self.apply_now(cmd, fresh=not isinstance(cmd, Release))
         fut = self.submit(cmd)
         try:
             try:
@@ -520,15 +532,15 @@ class LoopRuntime:
                 log.warning("sensor_request_failed", error=str(exc), suppressed=suppressed)
         self.phase_ns[5, row] = time.perf_counter_ns() - t0
 
-    def apply_now(self, cmd: Command) -> object:
+    def apply_now(self, cmd: Command, fresh: bool = True) -> object:
         """Without a loop thread (tests and tools stepping the daemon by hand): the
-        update takes ``cmd`` at once (no control step), judged on a fresh arm sample and
-        the last cycle's other readings, and the stop goes out when it says so; returns the reply (or raises
-        its error)."""
+        update takes ``cmd`` at once (no control step), judged on a fresh arm and sensor
+        sample (``fresh``; else the last cycle's) and the last cycle's other readings,
+        and the stop goes out when it says so; returns the reply (or raises its error)."""
         if self.readings is None:
             raise MmctlError("refused: no control cycle has run yet")
-        fut: Future[object] = Future()
-        fut.set_running_or_notify_cancel()
+        if not fresh:
+            return self._apply_on(self.readings, cmd)
         # the arm and the sensor read again (a reconnect may have just brought them back),
         # the rest as the last cycle saw it
         conditions: Conditions = {c: d for c, d in self.readings.conditions.items()
@@ -543,6 +555,11 @@ class LoopRuntime:
                 conditions[FaultCause.INTERNAL] = {"error": repr(exc)}
         readings = self.readings._replace(arm=arm, wrench=wrench, conditions=conditions,
                                           misses=self.loop.consecutive_misses)
+        return self._apply_on(readings, cmd)
+
+    def _apply_on(self, readings: Readings, cmd: Command) -> object:
+        fut: Future[object] = Future()
+        fut.set_running_or_notify_cancel()
         state, stop, events = self.update.apply(self.ustate, readings, [cmd])
         log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self.limiter)
         self.ustate = state
@@ -586,11 +603,6 @@ class LoopRuntime:
         cmd, fut = item
         if ev.error is None:
             match cmd:
-                case BeginEnable():  # the enable reconnects these links: leave them alone
-                    self.arm_busy = self.arm_busy or "arm" in ev.value
-                    self.sensor_busy = self.sensor_busy or "sensor" in ev.value
-                case EnableCheck() if ev.value:
-                    self.base_busy = True  # the enable enables the base: leave it alone
                 case EnableFinish() if ev.value == "armed":
                     self.loop.reset_misses()
                 case Install(cfg=cfg, controller=controller, key=key):

@@ -44,6 +44,7 @@ from mmctl.control.update import (
     EnableFinish,
     Install,
     Readings,
+    Release,
     SetMode,
     SetProfile,
     SetSwitch,
@@ -130,6 +131,8 @@ def decode_command(d: Record, cfg: Config) -> tuple[Command, Config]:
         return simple[t](), cfg
     if t == "SetMode":
         return SetMode(d["mode"]), cfg
+    if t == "Release":
+        return Release(d["link"]), cfg
     if t == "SetSwitch":
         return SetSwitch(d["to"]), cfg
     if t == "SetProfile":

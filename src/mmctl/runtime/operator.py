@@ -13,6 +13,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping
+from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import structlog
@@ -24,6 +25,7 @@ from mmctl.control.update import (
     EnableCheck,
     EnableFinish,
     Install,
+    Release,
     SetMode,
     SetProfile,
     SetSwitch,
@@ -178,13 +180,14 @@ class Operator:
             if "sensor" in links:
                 self._reconnect_sensor()
         finally:
-            self.rt.sensor_busy = False
+            if "sensor" in links:
+                self._release("sensor")
         if "arm" in links:
             with self.arm_reconnect:
                 try:
                     self._reconnect_arm()
                 finally:
-                    self.rt.arm_busy = False
+                    self._release("arm")
         with self.base_enable:
             left = deadline - time.monotonic()
             if left <= 0:
@@ -196,7 +199,8 @@ class Operator:
             try:
                 failure, fault = self._enable_base()
             finally:
-                self.rt.base_busy = False
+                # in the inbox before the EnableFinish: the same cycle takes both
+                self._release("base", wait=False)
             try:
                 # the drives' command watchdog runs from the enable: the loop arms (and
                 # sends targets) in its next cycle, whatever is left of the budget
@@ -207,6 +211,25 @@ class Operator:
                     self._disable_base_after_failed_enable()
                 raise
         return self._then_status(None)
+
+    def _release(self, link: str, wait: bool = True) -> None:
+        """Give ``link`` back to the loop once its work ended, and (``wait``) wait until
+        the loop has taken it (its next cycle reads the link: the enable's check judges
+        that read).  A loop that does not take it (stopping) is no error here: the
+        enable's next step then fails with the reason."""
+        if not self.rt.loop.running:  # stepped by hand: the update takes it at once
+            try:
+                self.rt.on_loop(Release(link))
+            except MmctlError as exc:
+                log.warning("link_release_not_taken", link=link, error=str(exc))
+            return
+        fut = self.rt.submit(Release(link))
+        if not wait:
+            return
+        try:
+            fut.result(self.cfg.daemon.command_timeout)
+        except (FutureTimeout, MmctlError) as exc:
+            log.warning("link_release_not_taken", link=link, error=str(exc))
 
     def _then_status(self, _done: object) -> dict[str, object]:
         """A command's reply: the status, built on the caller's thread (never on the
