@@ -101,7 +101,7 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
         sim.set_push([-10.0, 0.0, 0.0])
         n = d.cycles
         wait_for(lambda: d.cycles > n + 200, "cycles pushed again")
-        sim.inject("drive_fault")  # found by a read or by the twist (then a patch)
+        sim.inject("drive_fault")  # found by a read or by the twist (then write_failed)
         wait_for(lambda: d.safety.state.value == "fault", "the drive fault")
         wait_for(lambda: d.last_conditions, "the drive's condition")
         _enable(d)  # resets the drive
@@ -122,8 +122,8 @@ def test_a_recorded_run_replays_to_identical_commands(recorded: Path) -> None:
     kinds = {k for ev in side for k in ev if k != "cycle"}
     assert {"inbox", "conditions"} <= kinds, kinds
     inbox = [c["t"] for ev in side if "inbox" in ev for c in ev["inbox"]]
-    for t in ("Tare", "BeginEnable", "EnableCheck", "EnableFinish", "SetMode", "SetProfile",
-              "Install", "Disable"):
+    for t in ("Tare", "BeginEnable", "EnableCheck", "Release", "EnableFinish", "SetMode",
+              "SetProfile", "Install", "Disable"):
         assert t in inbox, inbox
     moving = [c for _, c in iter_rows(recorded) if c.qd_arm is not None and c.qd_arm.any()]
     assert len(moving) > 100 and any(c.stop for _, c in iter_rows(recorded))  # (a starved
@@ -194,3 +194,52 @@ def test_rows_round_trip_exactly() -> None:
     rc = row_commands(row)
     assert rc.qd_arm is not None and np.array_equal(rc.qd_arm, qd)
     assert rc.twist == c.twist and not rc.stop and not rc.kick
+
+
+def test_a_failed_write_is_replayed_through_the_updates_own_transition(tmp_path: Path) -> None:
+    """A command the write could not send latches its fault in its own cycle through
+    the update's pure ``write_failed`` transition; the log records the failure (not a
+    changed state) and replay runs the same transition: identical commands.  Without
+    that record the replay's robot moves on where the recorded one stopped."""
+    from mmctl.control.update import BeginEnable, EnableCheck, EnableFinish, Release
+    from test_update import DT, PUSH, rig
+
+    r = rig()
+    folder = tmp_path / "log"
+    log = InputLog(folder, r.update.cfg)
+    log.open()
+
+    def step(inbox: list[Any] | None = None) -> int:
+        r.t += DT
+        r.index += 1
+        readings = r.readings()
+        r.state, cmds, _ = r.update(r.state, readings, inbox or [])
+        log.append(readings, inbox or [], cmds)
+        return readings.index
+
+    step()
+    for inbox in ([BeginEnable()], [EnableCheck()], [Release("base"), EnableFinish()]):
+        step(inbox)
+    assert r.state.safety.armed
+    r.force = PUSH.copy()
+    for _ in range(20):
+        step()
+    failed = step()  # this cycle's base twist does not go out: the link is closed
+    details = {"device": "base", "error": "the socketcand connection closed"}
+    r.state, events = r.update.write_failed(r.state, FaultCause.BASE_LINK, details)
+    assert r.state.safety.latched is FaultCause.BASE_LINK and r.state.twist_sent is None
+    assert events
+    log.outcome(failed, "write_failed", {"cause": "base_link_lost", "details": details})
+    for _ in range(20):
+        step()
+    log.close()
+    side = (folder / "side.jsonl").read_text().splitlines()
+    assert sum('"write_failed"' in ln for ln in side) == 1
+    assert not any('"patch"' in ln for ln in side)
+    ok = replay(folder)
+    assert ok.first_difference is None and ok.cycles == r.index, ok
+    # the record is what makes it equal
+    (folder / "side.jsonl").write_text(
+        "".join(ln + "\n" for ln in side if '"write_failed"' not in ln))
+    res = replay(folder)
+    assert res.first_difference == failed + 1 and "speedJ" in res.detail, res

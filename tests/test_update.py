@@ -413,3 +413,29 @@ def test_the_update_is_a_function_of_its_inputs() -> None:
         ca, cb = a.step(), b.step()
         np.testing.assert_array_equal(ca.qd_arm, cb.qd_arm)
         assert ca.twist == cb.twist
+
+
+def test_the_writes_outcome_goes_through_the_updates_own_transitions() -> None:
+    """A failed command and a cycle that raised are the update's pure transitions (the
+    runtime changes no state itself): the fault latches in that cycle, the stop goes
+    out once, the twist is forgotten; a failing cycle while disarmed is a condition."""
+    r = rig()
+    r.step()
+    r.enable()
+    r.force = PUSH.copy()
+    for _ in range(20):
+        cmds = r.step()
+    assert r.state.twist_sent is not None
+    s, events = r.update.write_failed(r.state, FaultCause.ARM_DISCONNECTED, {"device": "arm"})
+    assert s.safety.latched is FaultCause.ARM_DISCONNECTED and s.twist_sent is None
+    assert [e.cause for e in events if isinstance(e, FaultRaised)] == [
+        FaultCause.ARM_DISCONNECTED]
+    again, events = r.update.write_failed(s, FaultCause.ARM_DISCONNECTED, {"device": "arm"})
+    assert again.safety == s.safety and not events  # latched already: no second fault
+    s, stop, events = r.update.cycle_failed(r.state, "ZeroDivisionError()")
+    assert stop and s.safety.latched is FaultCause.INTERNAL
+    r.state = s
+    cmds = r.step([Disable()])
+    s, stop, _ = r.update.cycle_failed(r.state, "ZeroDivisionError()")
+    assert not stop and FaultCause.INTERNAL in s.safety.active
+    assert not cmds.stop

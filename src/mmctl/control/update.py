@@ -312,6 +312,24 @@ class Update:
         kick = qd_arm is None and not r.arm_busy
         return s, Commands(stop, qd_arm, twist, kick, result), tuple(events)
 
+    # -- the write's outcome: the update's two other transitions ------------------------
+    def write_failed(self, s: UpdateState, cause: FaultCause, details: Mapping[str, Any]
+                     ) -> tuple[UpdateState, tuple[Event, ...]]:
+        """A command the write step could not send (its device raised): the fault
+        latches in this same cycle, the base's last twist is forgotten; the write sends
+        the stop.  A pure transition like the update, recorded as its input (the input
+        log's ``write_failed``) and replayed through this same function."""
+        safety, _, events = sm.trip(s.safety, cause, details)
+        return s._replace(safety=safety, twist_sent=None), tuple(events)
+
+    def cycle_failed(self, s: UpdateState, error: str
+                     ) -> tuple[UpdateState, bool, tuple[Event, ...]]:
+        """A cycle that raised (a bug): ``internal_error`` is this cycle's condition, as
+        any other (enable is refused while cycles keep failing); returns whether the
+        stop goes out.  Recorded and replayed as :meth:`write_failed` is."""
+        safety, stop, events = sm.observe(s.safety, {FaultCause.INTERNAL: {"error": error}})
+        return s._replace(safety=safety), stop, tuple(events)
+
     def apply(self, s: UpdateState, r: Readings, inbox: Sequence[Command]
               ) -> tuple[UpdateState, bool, tuple[Event, ...]]:
         """The inbox alone, judged on the readings ``r`` (a cycle's), without a control

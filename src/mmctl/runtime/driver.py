@@ -31,7 +31,6 @@ from typing import TYPE_CHECKING, NamedTuple, TypeVar, overload
 import numpy as np
 import structlog
 
-from mmctl.control import safety as sm
 from mmctl.control.safety import ConditionsChanged, FaultRaised, Safety, StateChanged
 from mmctl.control.update import (
     BeginEnable,
@@ -300,11 +299,11 @@ class LoopRuntime:
             self._cycle(tick, inbox)
         except Exception as exc:  # any bug in a cycle: stop the robot, log, go on
             # a condition like any other: enable is refused while cycles keep failing
-            state = self.ustate
-            safety, stop, events = sm.observe(state.safety,
-                                              {FaultCause.INTERNAL: {"error": repr(exc)}})
-            self.ustate = state._replace(safety=safety)
-            log_events(events, self.limiter)
+            self.ustate, stop, events = self.update.cycle_failed(self.ustate, repr(exc))
+            if self.input_log is not None:
+                self.input_log.outcome(tick.index, "cycle_failed", {"error": repr(exc)})
+            self._updated = self.ustate
+            log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self.limiter)
             if stop:
                 self.send_stop()
                 self.update_status()
@@ -491,15 +490,19 @@ class LoopRuntime:
     def _write_failed(self, device: str, default: FaultCause,
                       exc: SafetyFault | TransportError) -> None:
         """A command that failed: the write's one reflex.  The fault latches in this
-        cycle (the pure transition, :func:`mmctl.control.safety.trip`) and the stop goes
-        out at once; the next reads find the cause if it persists.  The input log
-        records the state it leaves as a patch (replay applies it)."""
+        cycle (the update's own pure transition,
+        :meth:`~mmctl.control.update.Update.write_failed`) and the stop goes out at
+        once; the next reads find the cause if it persists.  The input log records the
+        failure as the transition's input (replay runs the same transition)."""
         cause = exc.cause if isinstance(exc, SafetyFault) else default
         details = {"device": device,
                    **(exc.details if isinstance(exc, SafetyFault) else {"error": str(exc)})}
-        safety, _, events = sm.trip(self.ustate.safety, cause, details)
-        log_events(events, self.limiter)
-        self.ustate = self.ustate._replace(safety=safety, twist_sent=None)
+        self.ustate, events = self.update.write_failed(self.ustate, cause, details)
+        if self.input_log is not None:
+            self.input_log.outcome(self.readings.index if self.readings else self.cycles,
+                                   "write_failed", {"cause": cause.value, "details": details})
+        self._updated = self.ustate
+        log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self.limiter)
         self.send_stop()
 
     def _kick_arm_watchdog(self) -> None:

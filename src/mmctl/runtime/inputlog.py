@@ -10,9 +10,10 @@ A log is a folder:
   order): the readings (:class:`~mmctl.control.update.Readings`, arrays and numbers
   exact) and the update's commands (:class:`~mmctl.control.update.Commands`);
 - ``side.jsonl``: what is rare and not a number, one JSON object a line keyed by the
-  cycle: the conditions the reads raised, the inbox's commands, and the runtime's own
-  changes to the update's state after it ran (a failed command's fault, a calibration's
-  stop, a cycle that failed), as ``patch`` objects.
+  cycle: the conditions the reads raised, the inbox's commands, the write's outcome (a
+  command that failed: ``write_failed``; a cycle that raised: ``cycle_failed``; replay
+  runs the update's transitions of those names on them), and any change the runtime
+  made to the update's state itself, as ``patch`` objects (none in this version).
 
 The loop thread only copies numbers into a preallocated block (:meth:`InputLog.append`);
 a writer thread writes full blocks.  Replay (:func:`replay`) rebuilds the update from
@@ -318,6 +319,14 @@ class InputLog:
         if self._n == BLOCK:
             self._flush()
 
+    def outcome(self, cycle: int, kind: str, record: Record) -> None:
+        """The write's outcome in cycle ``cycle``: ``write_failed`` (cause, details) or
+        ``cycle_failed`` (error), the inputs of the update's transitions of that name."""
+        if not self._closed:
+            self._side.append({"cycle": cycle, kind: {
+                k: {kk: plain(vv) for kk, vv in v.items()} if isinstance(v, Mapping)
+                else plain(v) for k, v in record.items()}})
+
     def patch(self, cycle: int, patch: Record) -> None:
         """The runtime changed the update's state after the cycle ``cycle`` ran."""
         if not self._closed:
@@ -406,7 +415,7 @@ def replay(folder: str | Path, progress: Callable[[int, int], None] | None = Non
     for k, row in enumerate(rows):
         cycle = int(row[0])
         for c in sorted(x for x in by_cycle if x < cycle and x not in done):  # no row
-            state = _patches(state, by_cycle[c])
+            state = _patches(update, state, by_cycle[c])
             done.add(c)
         events = by_cycle.get(cycle, [])
         conditions: dict[FaultCause, Mapping[str, object]] = {}
@@ -432,15 +441,22 @@ def replay(folder: str | Path, progress: Callable[[int, int], None] | None = Non
             what.append(f"kick {cmds.kick} vs recorded {rec.kick}")
         if what:
             return ReplayResult(k + 1, cycle, "; ".join(what))
-        state = _patches(state, events)
+        state = _patches(update, state, events)
         done.add(cycle)
         if progress is not None and (k + 1) % 5000 == 0:
             progress(k + 1, len(rows))
     return ReplayResult(len(rows), None, "")
 
 
-def _patches(state: UpdateState, events: list[Record]) -> UpdateState:
+def _patches(update: Update, state: UpdateState, events: list[Record]) -> UpdateState:
+    """What happened after the cycle's update: the write's outcome through the update's
+    own transitions, and the runtime's changes to its state (patches)."""
     for ev in events:
+        if "write_failed" in ev:
+            d = ev["write_failed"]
+            state, _ = update.write_failed(state, FaultCause(d["cause"]), dict(d["details"]))
+        if "cycle_failed" in ev:
+            state, _, _ = update.cycle_failed(state, str(ev["cycle_failed"]["error"]))
         if "patch" in ev:
             state = apply_patch(state, ev["patch"])
     return state
