@@ -518,6 +518,7 @@ class ToolCalibration:
         self._move: Move | None = None
         self._last_seq: int | None = None
         self._checked_seq: int | None = None  # the last sample the push check saw
+        self._lag_min = math.inf  # the smallest now - pose_time seen [s]
         self._phi: Vec | None = None
         self._acc: list[Vec] = []
         self._acc_q: list[Vec] = []
@@ -551,22 +552,27 @@ class ToolCalibration:
 
     def step(self, q: Vec, qd: Vec, raw: Vec, sequence: int, now: float,
              hold: bool = False, scaling: float = 1.0, pose_new: bool = True,
-             sample_age: float = 0.0) -> Vec:
+             sample_age: float = 0.0, pose_time: float | None = None) -> Vec:
         """One cycle: measured ``q``, ``qd`` (9,) (arm, base), the raw wrench (6,) and
         its ``sequence``, ``now`` [s]; ``hold``: the arm's pose is stale (command zero,
         the motion's clock stands); ``scaling``: the share of a commanded speed the arm
         executes (the UR's speed slider: the motion's clock runs that much slower, so
         the reference waits for the arm); ``pose_new``: ``q`` is this cycle's sample
         (False: one repeated from an earlier cycle); ``sample_age``: how old the wrench
-        is [s] (``now`` less its reception).  Returns the arm's velocity command (6,)
-        [rad/s] (zero once it is no longer :attr:`running`).
+        is [s] (``now`` less its reception); ``pose_time``: the arm controller's time
+        stamp of ``q`` [s, its own clock] (None: not known).  Returns the arm's velocity
+        command (6,) [rad/s] (zero once it is no longer :attr:`running`).
 
         The push check compares a wrench with a pose of its time only: a new pose and a
         sample at most :data:`CHECK_SKEW` old.  Else the wrist has turned between the two
         (at 1 rad/s, 0.5 s of a starved loop's repeated poses or of a starved sensor
         link's late sample turn the handle's weight into a 5-8 N "push": both seen in CI
         runs under load); the check waits for the next pair (both stream at the loop's
-        rate)."""
+        rate).  A pose that is new to the loop can still be late: a starved arm link
+        draining a backlog hands over one old sample per cycle.  Its lag is judged
+        against the smallest seen so far (``now - pose_time``; the controller's clock
+        and ours differ by a constant, which the smallest lag takes out): a pose more
+        than :data:`CHECK_SKEW` later than the best one is not checked either."""
         dt = max(now - self._last_now, 0.0)
         self._last_now = now
         if not self.running:
@@ -583,7 +589,12 @@ class ToolCalibration:
         r = self.model.fk_base(q, "sensor").rotation
         fresh = sequence != self._last_seq
         self._last_seq = sequence
-        if pose_new and sample_age <= CHECK_SKEW and sequence != self._checked_seq:
+        timely = pose_new
+        if pose_time is not None and math.isfinite(pose_time):
+            lag = now - pose_time
+            self._lag_min = min(self._lag_min, lag)
+            timely = timely and lag - self._lag_min <= CHECK_SKEW
+        if timely and sample_age <= CHECK_SKEW and sequence != self._checked_seq:
             self._checked_seq = sequence
             if not self._check(raw, r, now):
                 return self._zero

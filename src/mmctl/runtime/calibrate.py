@@ -228,7 +228,8 @@ class Calibrations:
             return result
         cmd = c.step(result.q, result.qd, wrench.as_array(), wrench.sequence, now,
                      hold=repeats >= self.cfg.arm.hold_cycles, scaling=self.rt.speed_scaling,
-                     pose_new=repeats == 0, sample_age=now - wrench.timestamp)
+                     pose_new=repeats == 0, sample_age=now - wrench.timestamp,
+                     pose_time=self.rt.ustate.arm_time)
         if c.phase == "done":
             self._done(c)
         if c.phase == "aborted":
