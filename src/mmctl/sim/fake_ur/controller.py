@@ -20,7 +20,6 @@ import os
 import random
 import signal
 import threading
-from collections import deque
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -30,13 +29,18 @@ import structlog
 from mmctl.config.robot import DEFAULT_Q_DES
 from mmctl.errors import TransportError
 from mmctl.sim.fake_ur import server, shared
-from mmctl.sim.fake_ur.log import CommandKind, FakeCommand
+from mmctl.sim.fake_ur.log import CommandKind, CommandLog, FakeCommand
 from mmctl.types import ArmState
 
 if TYPE_CHECKING:  # typing.Self is 3.11+; the package supports 3.10
     from typing_extensions import Self
 
 log = structlog.get_logger("mmctl.fake_ur")
+
+#: Entries of the command log fetched from the process per request at most (a full ring
+#: of 200 000 in one message held the parent's GIL for seconds, and its peak stayed in
+#: the parent's RSS).
+LOG_CHUNK = 10_000
 
 
 class FakeURController:
@@ -45,12 +49,15 @@ class FakeURController:
     q_init: initial joint positions (6,) [rad] (default: the preferred configuration
     ``robot.q_des``); start_timeout [s]: how long :meth:`start` waits for the ports;
     request_timeout [s]: how long a fault injection waits for the process to answer;
-    log_capacity: entries kept by the process's command log.
+    log_capacity: entries kept by the process's command log, and by this side's copy of
+    it (fetched from the process by :meth:`commands`, :meth:`kill` and :meth:`stop`, at
+    most ``log_chunk`` entries per request, and kept encoded: one small ``bytes`` per
+    entry, :class:`~mmctl.sim.fake_ur.log.CommandLog`).
     """
 
     def __init__(self, host: str, q_init: Sequence[float] | None = None, *,
                  start_timeout: float = 30.0, request_timeout: float = 10.0,
-                 log_capacity: int = 200_000):
+                 log_capacity: int = 200_000, log_chunk: int = LOG_CHUNK):
         q = tuple(float(x) for x in (DEFAULT_Q_DES if q_init is None else q_init))
         if len(q) != 6 or not all(np.isfinite(q)):
             raise ValueError(f"q_init must be 6 finite joint angles [rad], got {q_init!r}")
@@ -59,14 +66,16 @@ class FakeURController:
         self.start_timeout = start_timeout
         self.request_timeout = request_timeout
         self.log_capacity = log_capacity
+        if log_chunk < 1:
+            raise ValueError(f"log_chunk must be >= 1, got {log_chunk!r}")
+        self.log_chunk = log_chunk
         self._ctx = multiprocessing.get_context("spawn")
         self._block = shared.new_block(self._ctx)
         self._proc: Any = None
         self._conn: Any = None
         self._lock = threading.Lock()
-        self._log: deque[FakeCommand] = deque(maxlen=log_capacity)
-        self._child_next = 0
-        self._seq_base = 0
+        #: the process's command log as fetched so far (it outlives the process)
+        self._log = CommandLog(log_capacity)
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -77,7 +86,7 @@ class FakeURController:
         parent, child = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(
             target=server.run, args=(self.host, self.q_init, self._block, child,
-                                      self.log_capacity),
+                                      self.log_capacity, self._log.next_seq),
             name=f"fake-ur-{self.host}", daemon=True)
         proc.start()
         child.close()
@@ -95,8 +104,6 @@ class FakeURController:
             parent.close()
             raise TransportError(f"fake UR on {self.host}: {detail}")
         self._proc, self._conn = proc, parent
-        self._child_next = 0
-        self._seq_base = self._log[-1].seq + 1 if self._log else 0
         log.debug("fake_ur_started", host=self.host, pid=proc.pid)
         return self
 
@@ -173,7 +180,7 @@ class FakeURController:
         """The command log so far (all kinds, or one), oldest first; see :class:`FakeCommand`."""
         if self.alive:
             self._fetch_log()
-        return [c for c in self._log if kind is None or c.kind is kind]
+        return [c for c in self._log.since(0) if kind is None or c.kind is kind]
 
     # -- fault injection (each returns the controller time [s] at which it took effect:
     #    the first sample that shows it carries a later timestamp) ---------------------------
@@ -239,11 +246,13 @@ class FakeURController:
         return t
 
     def _fetch_log(self) -> None:
-        entries: list[FakeCommand] = self._request("log", self._child_next)
-        if entries:
-            self._child_next = entries[-1].seq + 1
-            base = self._seq_base
-            self._log.extend(e._replace(seq=e.seq + base) for e in entries)
+        """Copy the process's new log entries here, ``log_chunk`` at a time (the process
+        numbers them on from this copy's last: :func:`server.run`'s ``first_seq``)."""
+        while True:
+            rows: list[bytes] = self._request("log", self._log.next_seq, self.log_chunk)
+            self._log.extend(rows)
+            if len(rows) < self.log_chunk:
+                return
 
     def _forget(self) -> None:
         if self._conn is not None:

@@ -313,8 +313,8 @@ class FakeURServer:
         elif op == "set_q":
             m.plant.set_q(list(args[0]))
             self._publish()
-        elif op == "log":
-            return m.log.since(args[0])
+        elif op == "log":  # the encoded entries from seq args[0] on, args[1] at most
+            return m.log.rows(args[0], args[1])
         elif op == "shutdown":
             self._running = False
         else:
@@ -323,14 +323,15 @@ class FakeURServer:
 
 
 def run(host: str, q_init: Sequence[float], block: Any = None, control: Any = None,
-        log_capacity: int = 200_000) -> None:
+        log_capacity: int = 200_000, first_seq: int = 0) -> None:
     """Entry point of the fake's process: serve until asked to stop.
 
     Reports ``("ready", pid)`` or ``("error", message)`` on ``control`` first.  The
     process leaves its parent's session first: a terminal's Ctrl-C (SIGINT to the whole
     foreground process group) must reach only the daemon, which sends its stop commands
     to this controller and then ends it.  A parent that dies closes the control pipe,
-    which ends this process too.
+    which ends this process too.  ``first_seq``: the seq of the command log's first
+    entry (a restarted controller numbers on from its predecessor's log).
     """
     import os
 
@@ -338,7 +339,7 @@ def run(host: str, q_init: Sequence[float], block: Any = None, control: Any = No
         os.setsid()
     except OSError:  # already a session leader (run standalone)
         pass
-    model = ControllerModel(q_init, CommandLog(log_capacity))
+    model = ControllerModel(q_init, CommandLog(log_capacity, first_seq))
     server = FakeURServer(host, model, control, block)
     try:
         server.open()
