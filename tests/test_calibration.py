@@ -176,7 +176,8 @@ def test_a_move_is_a_synchronised_trapezoid_within_speed_and_acceleration() -> N
 def _ideal_run(cfg: Any, push: np.ndarray | None = None, push_at: float = 1e9,
                base_drift: float = 0.0, scaling: float = 1.0, pose_gaps: int = 0,
                tell_repeats: bool = True, late_sensor: bool = False,
-               late_pose: float = 0.0) -> tuple[ToolCalibration, float]:
+               late_pose: float = 0.0, clock_jump: tuple[float, float] = (1e9, 0.0)
+               ) -> tuple[ToolCalibration, float]:
     """The routine on an arm that follows speedJ (times ``scaling``, the UR's speed
     slider) on a 4 rad/s^2 ramp, and the simulated sensor (sim.handle_*), 500 Hz.
     ``pose_gaps``: every second the arm's pose is repeated for that many cycles while
@@ -186,7 +187,9 @@ def _ideal_run(cfg: Any, push: np.ndarray | None = None, push_at: float = 1e9,
     pose is new and the sensor's samples are late instead (each one the gap's first
     measurement: a starved link); ``late_pose`` [s]: in those gaps every pose is new but
     that much old (a starved arm link draining its backlog), with its controller time
-    told (unless ``tell_repeats`` is False)."""
+    told (unless ``tell_repeats`` is False); ``clock_jump`` (at [s], by [s]): from then
+    on the controller's clock is that much behind ours (a simulated controller that
+    dropped steps under load)."""
     model = RobotModel(cfg.robot)
     sensor = HandleSensor(cfg)
     q = np.r_[np.asarray(cfg.robot.q_des), 0.0, 0.0, 0.0]
@@ -227,7 +230,8 @@ def _ideal_run(cfg: Any, push: np.ndarray | None = None, push_at: float = 1e9,
                        hold=repeats >= cfg.arm.hold_cycles,
                        pose_new=repeats == 0 or not tell_repeats,
                        sample_age=age if tell_repeats else 0.0,
-                       pose_time=pose_time + 100.0 if tell_repeats else None)
+                       pose_time=pose_time + 100.0 - (clock_jump[1] if t >= clock_jump[0]
+                                                      else 0.0) if tell_repeats else None)
         assert np.abs(cmd).max() <= max(plan.speeds) + 1e-12
         if not gap:
             qd[:6] += np.clip(scaling * cmd - qd[:6], -4.0 * dt, 4.0 * dt)
@@ -302,6 +306,12 @@ def test_a_push_or_a_moving_base_aborts_the_routine() -> None:
     cfg = config_from_dict(SIM_HANDLE)
     cal, t = _ideal_run(cfg, push=np.array([0.0, 8.0, 0.0]), push_at=4.0)
     assert cal.phase == "aborted" and t == pytest.approx(4.0, abs=0.01)
+    assert "on the handle beyond its weight" in (cal.error or "")
+    # also after the controller's clock fell 0.3 s behind ours (a simulated controller
+    # that dropped steps): the lag's floor follows within LAG_WINDOW, the check goes on
+    cal, t = _ideal_run(cfg, push=np.array([0.0, 8.0, 0.0]), push_at=6.0,
+                        clock_jump=(1.5, 0.3))
+    assert cal.phase == "aborted" and t == pytest.approx(6.0, abs=0.01)
     assert "on the handle beyond its weight" in (cal.error or "")
     assert not cal.step(np.zeros(9), np.zeros(9), np.zeros(6), 0, 5.0).any()  # stays at zero
     cal, _ = _ideal_run(cfg, base_drift=0.01)

@@ -78,6 +78,10 @@ SETTLE_TIMEOUT = 5.0
 #: [s] the oldest wrench the push check compares with this cycle's pose: five periods
 #: at 500 Hz, the sensor's default stale_timeout (the wrist turns 0.01 rad at 1 rad/s)
 CHECK_SKEW = 0.01
+#: [s] the pose lag's floor is the smallest over the last one to two of these: longer
+#: than a starved arm link's backlog (hundreds of ms), short enough to follow clocks
+#: that drift apart (a simulated controller's under load)
+LAG_WINDOW = 2.0
 #: fresh sensor samples a pose's average needs at least
 MIN_SAMPLES = 10
 #: [rad] the least angle between two chosen gravity directions
@@ -518,7 +522,9 @@ class ToolCalibration:
         self._move: Move | None = None
         self._last_seq: int | None = None
         self._checked_seq: int | None = None  # the last sample the push check saw
-        self._lag_min = math.inf  # the smallest now - pose_time seen [s]
+        # the smallest now - pose_time [s] of this and the last LAG_WINDOW (two buckets:
+        # a clock that drifts, as a simulated controller's under load, is followed)
+        self._lag_bucket = (math.nan, math.inf, math.inf)  # (start, this, last)
         self._phi: Vec | None = None
         self._acc: list[Vec] = []
         self._acc_q: list[Vec] = []
@@ -569,10 +575,11 @@ class ToolCalibration:
         link's late sample turn the handle's weight into a 5-8 N "push": both seen in CI
         runs under load); the check waits for the next pair (both stream at the loop's
         rate).  A pose that is new to the loop can still be late: a starved arm link
-        draining a backlog hands over one old sample per cycle.  Its lag is judged
-        against the smallest seen so far (``now - pose_time``; the controller's clock
-        and ours differ by a constant, which the smallest lag takes out): a pose more
-        than :data:`CHECK_SKEW` later than the best one is not checked either."""
+        draining a backlog hands over one old sample per cycle.  Its lag
+        (``now - pose_time``) is judged against the smallest of the last seconds
+        (:data:`LAG_WINDOW`; the controller's clock and ours differ by a near constant,
+        which the smallest lag takes out): a pose more than :data:`CHECK_SKEW` later
+        than that is not checked either."""
         dt = max(now - self._last_now, 0.0)
         self._last_now = now
         if not self.running:
@@ -592,8 +599,7 @@ class ToolCalibration:
         timely = pose_new
         if pose_time is not None and math.isfinite(pose_time):
             lag = now - pose_time
-            self._lag_min = min(self._lag_min, lag)
-            timely = timely and lag - self._lag_min <= CHECK_SKEW
+            timely = timely and lag - self._lag_floor(lag, now) <= CHECK_SKEW
         if timely and sample_age <= CHECK_SKEW and sequence != self._checked_seq:
             self._checked_seq = sequence
             if not self._check(raw, r, now):
@@ -644,6 +650,16 @@ class ToolCalibration:
         return self._zero
 
     # -- helpers -------------------------------------------------------------------------
+
+    def _lag_floor(self, lag: float, now: float) -> float:
+        """The smallest pose lag over the last one to two :data:`LAG_WINDOW` (``lag``
+        included)."""
+        start, this, last = self._lag_bucket
+        if not now - start < LAG_WINDOW:  # (nan at first)
+            start, last, this = now, this, math.inf
+        this = min(this, lag)
+        self._lag_bucket = (start, this, last)
+        return min(this, last)
 
     def _check(self, raw: Vec, r: Vec, now: float) -> bool:
         """The push check on a fresh sample; False (and aborted) on a hand."""
