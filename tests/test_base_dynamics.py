@@ -324,7 +324,7 @@ def test_the_study_plant_separates_the_world_from_the_odometry() -> None:
     assert s.qd[6:8] == pytest.approx([0.9 * 0.3, 0.8 * 0.2], rel=1e-9)
     assert odo.twist[:2] == pytest.approx([0.3, 0.2], rel=1e-9)
     clock = _Clock(plant, HandleSensor(cfg), RobotModel(cfg.robot), 0.002)
-    r = clock.readings(np.zeros(3), active=True, q=s.q, qd=s.qd)
+    r = clock.readings(np.zeros(3), q=s.q, qd=s.qd)
     assert (r.odom.x, r.odom.y) == (odo.pose[0], odo.pose[1])
     assert (r.odom.vx, r.odom.vy) == (odo.twist[0], odo.twist[1])
     assert np.array_equal(r.arm.q, s.q[:6])
