@@ -39,7 +39,9 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
     for key in ("loop", "sleep_baseline"):
         fig = rep[key]
         assert KEYS <= set(fig), key
-        assert fig["cycles"] > 50  # about 500 cycles in 1 s (a loaded machine skips many)
+        # about 500 cycles in 1 s quiet; with both cores busy (two `yes` loops) the bench
+        # counted 41-200 (the same before and after the re-cut): the loop ran, no more
+        assert fig["cycles"] > 10
         assert 0.0 <= fig["miss_rate"] <= 1.0
         assert 0.0 < fig["compute_p50_us"] <= fig["compute_p99_us"] <= fig["compute_max_us"]
         assert fig["latency_p50_us"] <= fig["latency_p99_us"] <= fig["latency_p999_us"]
