@@ -125,4 +125,10 @@ def test_mmctl_fake_ur_serves_the_probe(config: str, capsys: pytest.CaptureFixtu
         assert report["q_start"] == pytest.approx(Q0) and report["runtime_state"] == 2
     finally:
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(30) == 130
+        try:
+            code = proc.wait(30)
+        except subprocess.TimeoutExpired:  # never left serving after the test
+            proc.kill()
+            proc.wait()
+            raise
+        assert code == 130

@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"fake UR controller on {args.host}: dashboard {server.DASHBOARD_PORT}, "
           f"script {server.SCRIPT_PORT}, RTDE {server.RTDE_PORT} (Ctrl-C to stop)", flush=True)
     try:
-        server.run(args.host, args.q_init)
+        signum = server.run(args.host, args.q_init, stop_signals=True)
     except OSError as exc:
         raise TransportError(f"cannot serve on {args.host}: {exc.strerror or exc}") from None
-    return 0
+    return 0 if signum is None else 128 + signum  # as a shell reports a signal's end

@@ -83,6 +83,7 @@ class FakeURServer:
         self._listeners: list[socket.socket] = []
         self._conns: dict[int, _Conn] = {}
         self._running = False
+        self._shut = False  # shutdown() asked (also before serve() began)
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -118,7 +119,7 @@ class FakeURServer:
 
     def serve(self) -> None:
         """Run until the parent asks to shut down (or its pipe closes) or :meth:`shutdown`."""
-        self._running = True
+        self._running = not self._shut
         next_ns = time.perf_counter_ns() + PERIOD_NS
         while self._running:
             timeout = max(0.0, (next_ns - time.perf_counter_ns()) * 1e-9)
@@ -141,6 +142,7 @@ class FakeURServer:
             self._stream()
 
     def shutdown(self) -> None:
+        self._shut = True
         self._running = False
 
     # -- per period ----------------------------------------------------------------------
@@ -323,7 +325,8 @@ class FakeURServer:
 
 
 def run(host: str, q_init: Sequence[float], block: Any = None, control: Any = None,
-        log_capacity: int = 200_000, first_seq: int = 0) -> None:
+        log_capacity: int = 200_000, first_seq: int = 0, stop_signals: bool = False
+        ) -> int | None:
     """Entry point of the fake's process: serve until asked to stop.
 
     Reports ``("ready", pid)`` or ``("error", message)`` on ``control`` first.  The
@@ -332,6 +335,10 @@ def run(host: str, q_init: Sequence[float], block: Any = None, control: Any = No
     to this controller and then ends it.  A parent that dies closes the control pipe,
     which ends this process too.  ``first_seq``: the seq of the command log's first
     entry (a restarted controller numbers on from its predecessor's log).
+    ``stop_signals`` (run in the foreground, ``mmctl fake-ur``): SIGINT and SIGTERM end
+    the serving loop through a flag it checks every period, never as an exception (a
+    KeyboardInterrupt that lands in a finalizer is swallowed: seen once in a loaded CI
+    run, where the fake then served on for 20 minutes); returns the signal's number.
     """
     import os
 
@@ -349,8 +356,19 @@ def run(host: str, q_init: Sequence[float], block: Any = None, control: Any = No
         raise
     if control is not None:
         control.send(("ready", os.getpid()))
+    got: list[int] = []
+    if stop_signals:
+        import signal
+
+        def _stop(signum: int, _frame: object) -> None:
+            got.append(signum)
+            server.shutdown()
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, _stop)
     log.info("fake_ur_listening", host=host, ports=PORTS)
     try:
         server.serve()
     finally:
         server.close()
+    return got[0] if got else None
