@@ -444,6 +444,26 @@ def test_real_receive_interface_parses_every_default_variable(loopback_host: str
         _check_receive_interface(fake.host, fake)
 
 
+@pytest.mark.timeout(120)
+def test_a_switchs_two_contacts_change_in_one_sample(loopback_host: str) -> None:
+    """set_digital_inputs sets several inputs in one controller step (the contacts of
+    one dual-channel switch change together; two requests to a starved controller once
+    came 58 ms apart, which the daemon rightly called a discrepancy fault)."""
+    import rtde_receive
+
+    with start_fake_ur(loopback_host, q_init=Q0) as fake:
+        recv = rtde_receive.RTDEReceiveInterface(fake.host)
+        try:
+            fake.set_digital_inputs({8: True, 9: True, 3: True})
+            _wait(lambda: recv.getActualDigitalInputBits() == (1 << 8) | (1 << 9) | (1 << 3))
+            fake.set_digital_inputs({8: False, 9: False})
+            _wait(lambda: recv.getActualDigitalInputBits() == 1 << 3)
+            with pytest.raises(ValueError, match="0..63"):
+                fake.set_digital_inputs({64: True})
+        finally:
+            recv.disconnect()
+
+
 def _check_receive_interface(host: str, fake: FakeURController) -> None:
     import rtde_receive
 

@@ -334,12 +334,13 @@ class SimWorld:
             return
         with self._lock:
             held, broken = self.enabling_held, "enabling_contact" in self._faults
-        for k, index in enumerate(e.inputs):
-            closed = held and not (broken and k == len(e.inputs) - 1)
-            try:
-                self.ur.set_digital_input(index, closed != e.active_low)
-            except MmctlError as exc:  # the controller is down (a fault test)
-                log.warning("sim_enabling_failed", error=str(exc))
+        levels = {index: (held and not (broken and k == len(e.inputs) - 1)) != e.active_low
+                  for k, index in enumerate(e.inputs)}
+        try:  # in one request: a dual-channel switch's contacts change together (two
+            # requests to a starved controller were 58 ms apart: a discrepancy fault)
+            self.ur.set_digital_inputs(levels)
+        except MmctlError as exc:  # the controller is down (a fault test)
+            log.warning("sim_enabling_failed", error=str(exc))
 
     # -- what the simulation's control socket asks (mmctl.sim.service) ------------------
     def set_enabling(self, held: bool) -> None:

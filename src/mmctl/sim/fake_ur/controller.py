@@ -20,7 +20,7 @@ import os
 import random
 import signal
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -207,9 +207,16 @@ class FakeURController:
 
     def set_digital_input(self, index: int, on: bool) -> float:
         """Set bit ``index`` (0-17) of ``actual_digital_input_bits`` (a handle button)."""
-        if not 0 <= index < 64:
-            raise ValueError(f"digital input index must be 0..63, got {index}")
-        return float(self._request("digital_input", index, on))
+        return self.set_digital_inputs({index: on})
+
+    def set_digital_inputs(self, levels: Mapping[int, bool]) -> float:
+        """Set several bits of ``actual_digital_input_bits`` at once: every RTDE sample
+        has all of them or none (the contacts of one switch, which change together)."""
+        for index in levels:
+            if not 0 <= index < 64:
+                raise ValueError(f"digital input index must be 0..63, got {index}")
+        return float(self._request("digital_inputs",
+                                   [(int(i), bool(on)) for i, on in levels.items()]))
 
     def set_speed_slider(self, fraction: float) -> float:
         """The pendant's speed slider (0..1, RTDE ``target_speed_fraction``): speedJ

@@ -306,10 +306,11 @@ class FakeURServer:
             m.frozen = bool(args[0])
         elif op == "remote_control":
             m.remote_control = bool(args[0])
-        elif op == "digital_input":
-            index, on = args
-            m.digital_inputs = (m.digital_inputs | (1 << index)) if on \
-                else (m.digital_inputs & ~(1 << index))
+        elif op == "digital_inputs":  # several at once: one sample has them all
+            bits = m.digital_inputs
+            for index, on in args[0]:
+                bits = (bits | (1 << index)) if on else (bits & ~(1 << index))
+            m.digital_inputs = bits
         elif op == "speed_slider":
             m.plant.scale = min(max(float(args[0]), 0.0), 1.0)
         elif op == "set_q":
