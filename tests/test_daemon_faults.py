@@ -70,7 +70,9 @@ def fault_config() -> Config:
                    "wrench": {"stale_timeout": 5.0}},
         "base": {"transport": "canopen",
                  "canopen": {"interface": "virtual", "channel": f"flt-b-{uid}",
-                             "heartbeat_timeout": 5.0, "sdo_timeout": 5.0,
+                             # (sdo_timeout: the in-process drives answered no SDO
+                             # within 5 s at a start-up with both cores busy, CI)
+                             "heartbeat_timeout": 5.0, "sdo_timeout": 10.0,
                              "stop_timeout": 10.0},
                  "command_watchdog": 10.0},
         "loop": {"max_consecutive_misses": 200, "max_total_misses": 1_000_000_000},

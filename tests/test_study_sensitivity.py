@@ -146,6 +146,9 @@ def test_analysis_ranks_the_factor_that_moves_the_output() -> None:
     assert len(doc["points"]) == len(x) and len(doc["claims"]) == 15
 
 
+# 18 executions of the whole update and plant: about 125 s on a quiet machine, over 420 s
+# with both cores busy (CI)
+@pytest.mark.timeout(1200)
 def test_sensitivity_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc = main(["study", "sensitivity", "--trajectories", "2", "--users", "1", "--factors",
                "human.speed", "layout.spread", "--jobs", "1", "--out", str(tmp_path)])
