@@ -264,6 +264,58 @@ def test_with_a_velocity_loop_a_stopped_wheel_is_exactly_at_rest() -> None:
     assert w.omega[1] == 0.0
 
 
+class _CountingPlant(WheelPlant):
+    """A WheelPlant that counts its integration steps (two pose updates per step)."""
+
+    steps = 0
+
+    def _integrate(self, pose: np.ndarray, step: np.ndarray) -> None:  # type: ignore[override]
+        type(self).steps += 1
+        WheelPlant._integrate(pose, step)
+
+
+class _SteppingPlant(WheelPlant):
+    """A WheelPlant that never skips: every 1-ms step taken."""
+
+    def _at_rest(self) -> bool:
+        return False
+
+
+def test_a_plant_at_rest_skips_its_steps_and_one_about_to_move_does_not() -> None:
+    """Standing wheels with nothing to track cost no 1-ms steps however long the gap (a
+    starved simulation's drives held their lock through such steps for > 10 s); a
+    command in flight, a target to track or a wheel still turning are stepped as ever,
+    and the skip changes nothing: the same state as stepping through."""
+    dyn = BaseDynamics(latency=0.004, velocity_tau=0.01)
+    w = _CountingPlant(GEOM, ACC, None, t0=0.0, dynamics=dyn)
+    for i in range(4):
+        w.track(i, 0.0)
+    _CountingPlant.steps = 0
+    w.advance(10.0)
+    assert _CountingPlant.steps == 0 and w.t == 10.0
+    assert not w.omega.any() and not w.pose.any() and not w.theta.any()
+    w.command(2, 4.0, 10.0)  # in flight for 4 ms, then tracked
+    w.advance(10.5)
+    assert 500 <= _CountingPlant.steps // 2 <= 502 and w.omega[2] > 0.0  # (+ the dead time's split)
+    w.command(2, 0.0, 10.5)
+    w.advance(12.0)  # slowing down, then at rest: stepped until it stands
+    assert w.omega[2] == 0.0 and w.demand[2] == 0.0
+    ref = _SteppingPlant(GEOM, ACC, None, t0=0.0, dynamics=dyn)  # the same, stepped through
+    for i in range(4):
+        ref.track(i, 0.0)
+    ref.advance(10.0)
+    ref.command(2, 4.0, 10.0)
+    ref.advance(10.5)
+    ref.command(2, 0.0, 10.5)
+    ref.advance(12.0)
+    n = _CountingPlant.steps
+    w.advance(20.0)
+    ref.advance(20.0)
+    assert _CountingPlant.steps == n  # at rest again: skipped
+    for name in ("theta", "omega", "demand", "pose", "odometry_pose"):
+        np.testing.assert_array_equal(getattr(w, name), getattr(ref, name), err_msg=name)
+
+
 # -- 3. mecanum slip -------------------------------------------------------------------------
 
 @pytest.mark.parametrize(("twist", "ratio"), [

@@ -166,6 +166,9 @@ class WheelPlant:
         """Integrate up to monotonic time ``now`` [s] in steps of at most 1 ms."""
         tau = self.dynamics.velocity_tau
         with self.lock:
+            if self.t < now and self._at_rest():
+                self.t = now  # nothing moves nor will: no steps to take
+                return
             while self.t < now:
                 h = min(SUBSTEP, now - self.t)
                 pending = self.pending
@@ -214,6 +217,15 @@ class WheelPlant:
                 self._integrate(self.odometry_pose, odo)
                 self._integrate(self.pose, self._k * odo)
                 self.t += h
+
+    def _at_rest(self) -> bool:
+        """Every wheel stands, its demand is 0 and stays 0: no target it tracks (the
+        watchdog only ever zeroes one) and no command in flight.  Integrating then
+        changes nothing but the time: the drives' clock skips it (an idle simulation,
+        e.g. before the master configures them, costs no 1-ms steps; on a busy machine
+        those steps, under the drives' lock, had starved their SDO server for > 10 s)."""
+        return not (self.pending or self.omega.any() or self.demand.any()
+                    or (self.enabled & (self.target != 0.0)).any())
 
     @staticmethod
     def _integrate(pose: Vec, step: Vec) -> None:
