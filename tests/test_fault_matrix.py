@@ -983,6 +983,36 @@ def test_the_sample_hook_runs_after_the_stop_and_before_the_motion(
     assert seen == [([], "armed"), (["base.stop", "arm.stop", "base.disable"], "fault")]
 
 
+def test_a_cycle_that_fails_after_its_update_keeps_the_leases_answer(
+        make_rig: Callable[..., Rig]) -> None:
+    """A cycle that raises after its update ran (a condition: enable is refused while
+    cycles fail): the update's lease of a link to the enable's thread is answered as
+    such (the caller does the link's work and gives it back: the link is not left
+    unread for good); every other command in that cycle fails with the cycle's error."""
+    from mmctl.control.update import EnableCheck, Release, SetMode
+
+    rig = make_rig()
+    rig.step(3)
+    assert rig.daemon.safety.state is SafetyState.DISARMED
+    rt = rig.daemon.runtime
+
+    def broken(*_: Any) -> None:
+        raise RuntimeError("a telemetry bug")
+
+    rig.daemon.sample_hook = broken
+    check, mode = rt.submit(EnableCheck()), rt.submit(SetMode("locomotion"))
+    rig.step()
+    rig.daemon.sample_hook = None
+    assert check.result(0) is True and rt.base_busy  # the base: leased to the enable
+    with pytest.raises(RuntimeError, match="a telemetry bug"):
+        mode.result(0)
+    assert FaultCause.INTERNAL in rig.daemon.last_conditions  # (enable: refused meanwhile)
+    done = rt.submit(Release("base"))
+    rig.step()
+    done.result(0)
+    assert not rt.base_busy  # given back: the loop reads the base again
+
+
 def test_the_fault_matrix_in_the_docs_is_current() -> None:
     """docs/fault-matrix.md is what tools/fault_matrix.py measures on these peers."""
     import importlib.util

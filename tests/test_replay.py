@@ -24,7 +24,7 @@ from mmctl.cli import main
 from mmctl.config import Config, config_from_dict
 from mmctl.errors import FaultCause, MmctlError
 from mmctl.runtime.factory import create_daemon
-from mmctl.runtime.inputlog import InputLog, LogError, iter_rows, read_log, replay
+from mmctl.runtime.inputlog import VERSION, InputLog, LogError, iter_rows, read_log, replay
 from mmctl.sim.world import SimWorld
 from waiting import wait_for
 
@@ -161,6 +161,21 @@ def test_the_replay_command(recorded: Path, tmp_path: Path,
     assert json.loads(capsys.readouterr().out)["first_difference"] is None
     assert main(["replay", str(tmp_path)]) == 2
     assert "not a readable inputs log" in capsys.readouterr().err
+
+
+def test_a_log_of_a_newer_version_is_refused(recorded: Path, tmp_path: Path) -> None:
+    """A log written by a newer mmctl may hold records this one would skip: refused,
+    naming both versions, rather than replayed differently."""
+    copy = tmp_path / "newer"
+    copy.mkdir()
+    for name in ("rows.f64", "side.jsonl"):
+        (copy / name).write_bytes((recorded / name).read_bytes())
+    meta = json.loads((recorded / "meta.json").read_text())
+    assert meta["version"] == VERSION
+    (copy / "meta.json").write_text(json.dumps({**meta, "version": VERSION + 1}))
+    with pytest.raises(LogError, match=f"version {VERSION + 1}; this mmctl reads versions "
+                                       f"1 to {VERSION}"):
+        read_log(copy)
 
 
 def test_a_log_folder_in_use_is_refused(recorded: Path) -> None:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Mapping
 from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -86,7 +87,11 @@ class Calibrations:
             if disarmed is not None and self.rt.loop.running:
                 # the reply once the update has taken the Disable: a status asked right
                 # after the abort says disarmed
-                disarmed.result(self.cfg.daemon.command_timeout)
+                try:
+                    disarmed.result(self.cfg.daemon.command_timeout)
+                except (FutureTimeout, MmctlError) as exc:  # aborted all the same: the
+                    # stop went out; the loop that did not take the Disable says why
+                    log.warning("calibration_abort_disable_not_taken", error=str(exc))
             return report
         raise MmctlError(f"calibrate: action {action!r}: must be 'start', 'status' or 'abort'")
 

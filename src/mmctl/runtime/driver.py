@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, NamedTuple, TypeVar, overload
 import numpy as np
 import structlog
 
-from mmctl.control.safety import ConditionsChanged, FaultRaised, Safety, StateChanged
+from mmctl.control.safety import FaultRaised, Safety, StateChanged
 from mmctl.control.update import (
     BeginEnable,
     Changed,
@@ -55,7 +55,6 @@ from mmctl.control.update import (
 from mmctl.errors import FaultCause, IpcError, MmctlError, SafetyFault, TransportError
 from mmctl.runtime.core import ControlCore, CycleResult
 from mmctl.runtime.devices import Devices
-from mmctl.runtime.inputlog import patch_between
 from mmctl.runtime.logging import RateLimiter
 from mmctl.runtime.loop import CycleLoop, GcInSlack, Tick, Wait
 from mmctl.runtime.notify import Notifier
@@ -72,7 +71,8 @@ _LINK_CAUSE = {"arm": FaultCause.ARM_DISCONNECTED, "sensor": FaultCause.SENSOR_L
 PHASES = ("arm_read", "sensor_read", "base_read", "arm_send", "base_send", "sensor_request")
 
 _Z3 = np.zeros(3)
-SAFETY_EVENTS = (FaultRaised, StateChanged, ConditionsChanged)
+#: The commands that lease links to an enable's thread or give them back
+LEASING = (BeginEnable, EnableCheck, Release)
 
 if TYPE_CHECKING:
     from mmctl.config import Config
@@ -133,9 +133,9 @@ class LoopRuntime:
         self._inputs = tuple(cfg.enabling.inputs) + (
             (cfg.daemon.switch_input,) if cfg.daemon.switch_input >= 0 else ())
         self.input_log = input_log
-        #: the update's state as the update left it this cycle (the runtime's own
-        #: changes after it go into the input log as patches)
-        self._updated: UpdateState = self.ustate
+        #: this cycle's update events not yet answered (a cycle that fails after its
+        #: update ran still gives the inbox's callers the update's own replies)
+        self._unanswered: tuple[object, ...] = ()
         #: the last cycle's readings (None: no cycle yet)
         self.readings: Readings | None = None
         self.ring = TimingRing(cfg.loop.timing_samples)
@@ -293,33 +293,44 @@ class LoopRuntime:
     def cycle(self, tick: Tick) -> None:
         """One control period (loop thread)."""
         inbox: list[tuple[Command, Future[object]]] = []
-        self._updated = self.ustate
         try:
             inbox = self._take_inbox()
             self._cycle(tick, inbox)
         except Exception as exc:  # any bug in a cycle: stop the robot, log, go on
+            error = repr(exc)
             # a condition like any other: enable is refused while cycles keep failing
-            self.ustate, stop, events = self.update.cycle_failed(self.ustate, repr(exc))
+            self.ustate, stop, events = self.update.cycle_failed(self.ustate, error)
             if self.input_log is not None:
-                self.input_log.outcome(tick.index, "cycle_failed", {"error": repr(exc)})
-            self._updated = self.ustate
-            log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self.limiter)
+                self.input_log.outcome(tick.index, "cycle_failed", {"error": error})
+            log_events(events, self.limiter)
             if stop:
                 self.send_stop()
                 self.update_status()
-            for _, fut in inbox:  # never left waiting
-                if not fut.done():
-                    fut.set_exception(exc)
+            self._answer_after_failure(inbox, exc)
             suppressed = self.limiter.allow("cycle_failed")
             if suppressed is not None:
-                log.exception("cycle_failed", error=repr(exc), suppressed=suppressed)
-        if self.input_log is not None and self.ustate is not self._updated:
-            patch = patch_between(self._updated, self.ustate)
-            if patch is not None:
-                self.input_log.patch(tick.index, patch)
+                log.exception("cycle_failed", error=error, suppressed=suppressed)
         self.cycles += 1
         if self.notifier.watchdog_interval is not None:
             self.notifier.watchdog_tick(tick.wake_ns)
+
+    def _answer_after_failure(self, inbox: list[tuple[Command, Future[object]]],
+                              exc: Exception) -> None:
+        """A failed cycle's inbox: a lease its update gave or took back stands, so
+        that command keeps the update's reply (the caller then does the link's work and
+        gives the link back, as after any cycle); every other command fails with
+        ``exc``.  No caller is left waiting."""
+        events, self._unanswered = self._unanswered, ()
+        for ev in events:
+            if (isinstance(ev, Reply) and isinstance(inbox[ev.index][0], LEASING)
+                    and not inbox[ev.index][1].done()):
+                try:
+                    self._reply(inbox[ev.index], ev)
+                except Exception:
+                    log.exception("reply_failed", command=type(inbox[ev.index][0]).__name__)
+        for _, fut in inbox:
+            if not fut.done():
+                fut.set_exception(exc)
 
     def _take_inbox(self) -> list[tuple[Command, Future[object]]]:
         """The update's commands queued since the last cycle (at most ``inbox_size``);
@@ -409,8 +420,9 @@ class LoopRuntime:
         state, commands, events = self.update(self.ustate, readings, taken)
         self.step_ns[self.cycles % self.step_ns.shape[0]] = time.perf_counter_ns() - t0
         if events:  # logged before the new state is seen: a fault seen has its event
-            log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self.limiter)
-        self.ustate = self._updated = state
+            log_events(events, self.limiter)
+        self.ustate = state
+        self._unanswered = events
         if self.input_log is not None:
             self.input_log.append(readings, taken, commands)
         self.core.cstate = state.chain
@@ -436,6 +448,7 @@ class LoopRuntime:
                  self.ustate.safety.state.value)
             self.hook_ns[self.cycles % self.hook_ns.shape[0]] = time.perf_counter_ns() - t0
         self._write(commands, row)
+        self._unanswered = ()
         self._after(events, inbox)
         if (not state.safety.active and self.devices.connected
                 and not self.healthy_cycle.is_set()):
@@ -501,8 +514,7 @@ class LoopRuntime:
         if self.input_log is not None:
             self.input_log.outcome(self.readings.index if self.readings else self.cycles,
                                    "write_failed", {"cause": cause.value, "details": details})
-        self._updated = self.ustate
-        log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self.limiter)
+        log_events(events, self.limiter)
         self.send_stop()
 
     def _kick_arm_watchdog(self) -> None:
@@ -564,7 +576,7 @@ class LoopRuntime:
         fut: Future[object] = Future()
         fut.set_running_or_notify_cancel()
         state, stop, events = self.update.apply(self.ustate, readings, [cmd])
-        log_events([e for e in events if isinstance(e, SAFETY_EVENTS)], self.limiter)
+        log_events(events, self.limiter)
         self.ustate = state
         self.core.cstate = state.chain
         if stop:

@@ -12,8 +12,10 @@ A log is a folder:
 - ``side.jsonl``: what is rare and not a number, one JSON object a line keyed by the
   cycle: the conditions the reads raised, the inbox's commands, the write's outcome (a
   command that failed: ``write_failed``; a cycle that raised: ``cycle_failed``; replay
-  runs the update's transitions of those names on them), and any change the runtime
-  made to the update's state itself, as ``patch`` objects (none in this version).
+  runs the update's transitions of those names on them).  Version 1 logs also hold
+  ``patch`` objects, the runtime's own changes to the update's state, which replay
+  still applies; since version 2 the runtime makes none (the write's outcome is the
+  update's transition).
 
 The loop thread only copies numbers into a preallocated block (:meth:`InputLog.append`);
 a writer thread writes full blocks.  Replay (:func:`replay`) rebuilds the update from
@@ -58,7 +60,7 @@ from mmctl.types import ArmState, Odometry, Wrench
 
 log = structlog.get_logger("mmctl.inputlog")
 
-VERSION = 1
+VERSION = 2
 #: The row's fields, in order (arrays by their length).
 FIELDS: tuple[tuple[str, int], ...] = (
     ("index", 1), ("now", 1), ("dt", 1),
@@ -170,19 +172,6 @@ def _encode_conditions(c: Mapping[FaultCause, Mapping[str, object]]) -> Record:
 
 def _decode_conditions(d: Record) -> dict[FaultCause, Mapping[str, object]]:
     return {FaultCause(k): dict(v) for k, v in d.items()}
-
-
-def patch_between(expected: UpdateState, actual: UpdateState) -> Record | None:
-    """What the runtime changed in the update's state after the update ran (a failed
-    command's fault, a calibration's stop or twist): None when nothing."""
-    if actual is expected:
-        return None
-    out: Record = {}
-    if actual.safety is not expected.safety:
-        out["safety"] = _encode_safety(actual.safety)
-    if actual.twist_sent != expected.twist_sent:
-        out["twist_sent"] = None if actual.twist_sent is None else list(actual.twist_sent)
-    return out or None
 
 
 def apply_patch(s: UpdateState, patch: Record) -> UpdateState:
@@ -327,11 +316,6 @@ class InputLog:
                 k: {kk: plain(vv) for kk, vv in v.items()} if isinstance(v, Mapping)
                 else plain(v) for k, v in record.items()}})
 
-    def patch(self, cycle: int, patch: Record) -> None:
-        """The runtime changed the update's state after the cycle ``cycle`` ran."""
-        if not self._closed:
-            self._side.append({"cycle": cycle, "patch": dict(patch)})
-
     def _flush(self) -> None:
         self._q.put((self._block[:self._n], self._side))
         self._block = np.zeros((BLOCK, WIDTH))
@@ -388,6 +372,11 @@ def read_log(folder: str | Path) -> tuple[Config, F64, list[Record]]:
                 if line.strip()]
     except (OSError, ValueError) as exc:
         raise LogError(f"{folder}: not a readable inputs log ({exc})") from exc
+    version = meta.get("version")
+    if meta.get("format") == "mmctl-inputs" and not (isinstance(version, int)
+                                                     and 1 <= version <= VERSION):
+        raise LogError(f"{folder}: an inputs log of version {version!r}; this mmctl reads "
+                       f"versions 1 to {VERSION} (replay it with the mmctl that wrote it)")
     if meta.get("format") != "mmctl-inputs" or meta.get("width") != WIDTH:
         raise LogError(f"{folder}: not an inputs log of this version (format "
                        f"{meta.get('format')!r}, width {meta.get('width')!r}; this mmctl "

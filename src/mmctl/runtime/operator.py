@@ -179,15 +179,12 @@ class Operator:
         try:
             if "sensor" in links:
                 self._reconnect_sensor()
-        finally:
-            if "sensor" in links:
-                self._release("sensor")
-        if "arm" in links:
-            with self.arm_reconnect:
-                try:
+            if "arm" in links:
+                with self.arm_reconnect:
                     self._reconnect_arm()
-                finally:
-                    self._release("arm")
+        finally:  # every link leased, whichever reconnect failed
+            for link in links:
+                self._release(link)
         with self.base_enable:
             left = deadline - time.monotonic()
             if left <= 0:
