@@ -281,7 +281,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     path = tmp / "mmctl.sock"
     sim = open_sim(cfg)  # the caller's, never the daemon's: before it connects
     assert sim is not None
-    daemon = create_daemon(cfg, socket_path=path, sim=sim)
+    try:
+        daemon = create_daemon(cfg, socket_path=path, sim=sim)
+    except BaseException:
+        sim.close()
+        raise
     out: dict[str, Any] = {"socket_process": True,
                            "rt_priority": args.rt_priority, "loop_cpu": args.loop_cpu,
                            "sim_priority": args.sim_priority, "client_nice": args.client_nice,

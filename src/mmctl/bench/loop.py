@@ -241,7 +241,7 @@ def update_back_to_back(cfg: Any, n: int = 3000, push: float = 20.0) -> dict[str
     import numpy as np
 
     from mmctl.control.cycle import CycleChain
-    from mmctl.control.update import BeginEnable, EnableCheck, EnableFinish, Readings, Update
+    from mmctl.control.update import ENABLE_WITHOUT_DEVICES, Readings, Update
     from mmctl.types import ArmState, Odometry, Wrench
 
     update = Update(cfg, CycleChain(cfg))
@@ -250,7 +250,7 @@ def update_back_to_back(cfg: Any, n: int = 3000, push: float = 20.0) -> dict[str
     q_a = np.asarray(cfg.robot.q_des, dtype=float)[:6].copy()
     raw = chain.wrench.gravity_wrench(chain.model.fk_base(np.r_[q_a, np.zeros(3)],
                                                           "sensor").rotation)
-    held = sum((0 if cfg.enabling.active_low else 1) << i for i in cfg.enabling.inputs)
+    held = update.held_inputs
     k = [0]
 
     def readings(extra: float) -> Readings:
@@ -263,7 +263,7 @@ def update_back_to_back(cfg: Any, n: int = 3000, push: float = 20.0) -> dict[str
                         Odometry(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, t), held)
 
     s = update.initial_state()
-    for cmd in (BeginEnable(), EnableCheck(), EnableFinish()):
+    for cmd in ENABLE_WITHOUT_DEVICES:
         s, _, _ = update(s, readings(0.0), [cmd])
     items = [readings(push) for _ in range(n + 500)]
     for r in items[:500]:

@@ -247,6 +247,12 @@ class Update:
         self.divider = cfg.loop.base_divider
         self.jump = cfg.loop.base_jump
 
+    @property
+    def held_inputs(self) -> int:
+        """The arm's digital-inputs word with the enabling switch held: each contact
+        at its held level (no switch configured: 0).  What a scripted hand sends."""
+        return sum(1 << i for i in self.enabling_inputs) if self.enabling_level else 0
+
     def initial_state(self) -> UpdateState:
         """Disarmed, at rest, in ``idk.strategy``."""
         return UpdateState(self.chain.initial_state(), Safety())
@@ -540,9 +546,15 @@ def _profile(reduced: bool) -> str:
     return "reduced" if reduced else "normal"
 
 
+#: An operator's enable with no device work to do (a study's plant, a benchmark): the
+#: runtime's sequence (runtime/operator.py), the base's lease given back at once.
+ENABLE_WITHOUT_DEVICES: tuple[Command, ...] = (
+    BeginEnable(), EnableCheck(), Release("base"), EnableFinish())
+
 __all__ = [
     "ARM_RECONNECT_CAUSES",
     "BASE_CAUSES",
+    "ENABLE_WITHOUT_DEVICES",
     "LINKS",
     "_Z3",
     "BeginEnable",

@@ -262,8 +262,7 @@ class LoopRuntime:
                 raise IpcError("the control loop is not running")
             if isinstance(cmd, RunOnLoop):
                 return cmd.fn()
-            # a Release is judged on nothing: no fresh read (a scripted device counts it)
-            return self.apply_now(cmd, fresh=not isinstance(cmd, Release))
+            return self.apply_now(cmd)
         fut = self.submit(cmd)
         try:
             try:
@@ -554,7 +553,7 @@ class LoopRuntime:
         and the stop goes out when it says so; returns the reply (or raises its error)."""
         if self.readings is None:
             raise MmctlError("refused: no control cycle has run yet")
-        if not fresh:
+        if not fresh or isinstance(cmd, Release):  # a Release is judged on nothing
             return self._apply_on(self.readings, cmd)
         # the arm and the sensor read again (a reconnect may have just brought them back),
         # the rest as the last cycle saw it

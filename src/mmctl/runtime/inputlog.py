@@ -93,13 +93,18 @@ class LogError(MmctlError):
 
 # -- commands and state patches as JSON ---------------------------------------------------
 
+def _plain_map(d: Mapping[str, object]) -> Record:
+    """A details mapping as JSON values."""
+    return {k: plain(v) for k, v in d.items()}
+
+
 def _exc(e: BaseException | None) -> Record | None:
     if e is None:
         return None
     out: Record = {"type": type(e).__name__, "message": str(e)}
     if isinstance(e, SafetyFault):
         out["cause"] = e.cause.value
-        out["details"] = {k: plain(v) for k, v in e.details.items()}
+        out["details"] = _plain_map(e.details)
     return out
 
 
@@ -156,7 +161,7 @@ def decode_command(d: Record, cfg: Config) -> tuple[Command, Config]:
 
 def _encode_safety(s: Safety) -> Record:
     return {"state": s.state.value, "latched": s.latched.value if s.latched else None,
-            "latched_details": {k: plain(v) for k, v in s.latched_details.items()},
+            "latched_details": _plain_map(s.latched_details),
             "active": _encode_conditions(s.active), "faults": s.faults}
 
 
@@ -167,7 +172,7 @@ def _decode_safety(d: Record) -> Safety:
 
 
 def _encode_conditions(c: Mapping[FaultCause, Mapping[str, object]]) -> Record:
-    return {cause.value: {k: plain(v) for k, v in d.items()} for cause, d in c.items()}
+    return {cause.value: _plain_map(d) for cause, d in c.items()}
 
 
 def _decode_conditions(d: Record) -> dict[FaultCause, Mapping[str, object]]:
@@ -313,8 +318,8 @@ class InputLog:
         ``cycle_failed`` (error), the inputs of the update's transitions of that name."""
         if not self._closed:
             self._side.append({"cycle": cycle, kind: {
-                k: {kk: plain(vv) for kk, vv in v.items()} if isinstance(v, Mapping)
-                else plain(v) for k, v in record.items()}})
+                k: _plain_map(v) if isinstance(v, Mapping) else plain(v)
+                for k, v in record.items()}})
 
     def _flush(self) -> None:
         self._q.put((self._block[:self._n], self._side))

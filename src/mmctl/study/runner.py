@@ -46,11 +46,9 @@ from mmctl.config.control import Mode
 from mmctl.control.cycle import CycleChain
 from mmctl.control.metrics import trial_metrics
 from mmctl.control.update import (
-    BeginEnable,
+    ENABLE_WITHOUT_DEVICES,
     Command,
     Commands,
-    EnableCheck,
-    EnableFinish,
     Readings,
     Reply,
     SetSwitch,
@@ -172,8 +170,9 @@ def run_execution(
     p_des = model.update(np.concatenate((np.asarray(cfg.robot.q_des), np.zeros(3))),
                          inertia=False).p_base
     dt = chain.dt
-    clock = _Clock(plant, sensor, model, dt, _held_inputs(cfg))
     update = Update(cfg, chain)
+    # (the person holds the handle, its enabling switch with it, throughout)
+    clock = _Clock(plant, sensor, model, dt, update.held_inputs)
     # hands off the handle: the tare and the enable the operator runs before the first
     # push, as commands into the update's inbox
     state, tare_cycles = _tare_and_enable(update, clock, plant)
@@ -264,13 +263,6 @@ _Z6 = np.zeros(6)
 _NO_FORCE = np.zeros(3)
 
 
-def _held_inputs(cfg: Config) -> int:
-    """The arm's digital inputs with the handle's enabling switch held (the person holds
-    the handle throughout; no switch configured: none)."""
-    e = cfg.enabling
-    return 0 if e.active_low else sum(1 << i for i in e.inputs)
-
-
 def _tare_and_enable(update: Update, clock: _Clock, plant: Plant) -> tuple[UpdateState, int]:
     """Hands off the handle: the operator's tare, then the enable (the study's base
     has no drives to enable: its enable succeeds), both through the update's inbox.
@@ -288,7 +280,7 @@ def _tare_and_enable(update: Update, clock: _Clock, plant: Plant) -> tuple[Updat
             return state, cycles
         inbox = []
         if state.chain.wrench.tare_left == 0:
-            inbox = [BeginEnable(), EnableCheck(), EnableFinish()]
+            inbox = list(ENABLE_WITHOUT_DEVICES)
 
 
 def _raise_refused(events: tuple[object, ...]) -> None:

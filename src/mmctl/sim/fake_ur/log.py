@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import bisect
+import itertools
 import struct
 import time
 from collections import deque
@@ -186,7 +187,7 @@ class CommandLog:
         ring = self._ring
         start = self._index(seq)
         stop = len(ring) if limit is None else min(len(ring), start + max(0, limit))
-        return [ring[i] for i in range(start, stop)]
+        return list(itertools.islice(ring, start, stop))  # (a deque's [i] walks to i)
 
     def extend(self, rows: list[bytes]) -> None:
         """Append encoded entries of another log (their seqs kept: ascending, above

@@ -119,9 +119,10 @@ class FakeURServer:
 
     def serve(self) -> None:
         """Run until the parent asks to shut down (or its pipe closes) or :meth:`shutdown`."""
-        self._running = not self._shut
+        self._running = True
         next_ns = time.perf_counter_ns() + PERIOD_NS
-        while self._running:
+        # (_shut too: a shutdown() between the two lines above is not lost)
+        while self._running and not self._shut:
             timeout = max(0.0, (next_ns - time.perf_counter_ns()) * 1e-9)
             for key, mask in self._sel.select(timeout):
                 self._event(key, mask)
