@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from mmctl.bench.telemetry_overhead import MIN_PAIRS
 from mmctl.cli import main
 from mmctl.runtime.pmqos import DEVICE, current_limit
 from simconfig import LOAD_PROOF, write_sim_config
@@ -17,7 +18,7 @@ KEYS = {"compute_p50_us", "compute_p99_us", "compute_max_us", "latency_p50_us",
         "latency_p99_us", "latency_p999_us", "miss_rate", "cycles"}
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(600)  # (300 s ran out once with the machine at load 12)
 @pytest.mark.parametrize("process", [True, False], ids=["child-process", "thread"])
 def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
                          capsys: pytest.CaptureFixture[str]) -> None:
@@ -48,10 +49,17 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
     tel = rep["telemetry"]
     assert rep["telemetry_seconds"] == 2.0
     assert tel["phases"] == 10 and tel["off"]["cycles"] > 0 and tel["on"]["cycles"] > 0
-    ci = tel["interval"]  # bootstrap over the 5 window pairs
-    assert ci["pairs"] == 5 and ci["confidence"] == 0.95
-    for key in ("compute_p99_growth_ci", "extra_misses_per_1e5_ci"):
-        assert ci[key][0] <= ci[key][1], key
+    # the bootstrap over the 5 window pairs that both held cycles: a 0.2-s window of a
+    # starved loop can hold none (seen with both cores busy); below MIN_PAIRS, none
+    usable = len(tel.get("compute_p99_growth_pairs", []))
+    assert usable <= 5
+    ci = tel["interval"]
+    if usable >= MIN_PAIRS:
+        assert ci["pairs"] == usable and ci["confidence"] == 0.95
+        for key in ("compute_p99_growth_ci", "extra_misses_per_1e5_ci"):
+            assert ci[key][0] <= ci[key][1], key
+    else:
+        assert ci == {}, ci
     # the "on" windows' samples reached the recording (a faulted daemon has none: say so)
     assert tel["published"] > 0, (tel, rep.get("faults"), rep["loop"].get("armed_at_end"))
     assert tel["published"] + tel["dropped"] == tel["accepted"]
