@@ -61,7 +61,7 @@ def loopback_host() -> str:
 #: watchdog thread dumps every thread's stack and ends the worker process, so xdist
 #: reports the test as crashed and the run goes on instead of hanging CI.  It fires this
 #: long after the test's own pytest-timeout (its mark, else the ini's), never before it:
-#: a fixed 420 s once ended a worker inside a 600-s-marked study test that was slow,
+#: a fixed 420 s once ended a worker inside a study test (pytest-timeout 600 s) that was slow,
 #: not hung, on a busy machine (CI, both cores busy).
 HARD_TIMEOUT_GRACE_S = 120.0
 
