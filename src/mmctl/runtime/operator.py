@@ -176,15 +176,19 @@ class Operator:
         deadline = time.monotonic() + budget
         links = self.rt.on_loop(BeginEnable(), budget)
         assert isinstance(links, tuple)  # (BeginEnable's reply: the links' names)
-        try:
-            if "sensor" in links:
-                self._reconnect_sensor()
+        try:  # every link leased is given back, whichever reconnect failed
+            try:
+                if "sensor" in links:
+                    self._reconnect_sensor()
+            finally:  # (before the arm's reconnect, which takes seconds)
+                if "sensor" in links:
+                    self._release("sensor")
             if "arm" in links:
                 with self.arm_reconnect:
                     self._reconnect_arm()
-        finally:  # every link leased, whichever reconnect failed
-            for link in links:
-                self._release(link)
+        finally:
+            if "arm" in links:
+                self._release("arm")
         with self.base_enable:
             left = deadline - time.monotonic()
             if left <= 0:
