@@ -42,7 +42,7 @@ from mmctl.runtime.ipc import request
 from mmctl.sim.handle import HandleSensor
 from mmctl.types import ArmState, Odometry, Wrench
 from simconfig import LOAD_PROOF, write_sim_config
-from waiting import wait_while_alive
+from waiting import wait_while_alive, with_ur_program
 
 ROOT = Path(__file__).resolve().parents[1]
 MASS, COM = 1.1, np.array([0.01, -0.015, 0.1])
@@ -426,7 +426,9 @@ class Daemon:
         return self.out.read_text(errors="replace")
 
     def wait_for(self, pred: Any, what: str, timeout: float = 180.0) -> Any:
-        return wait_while_alive(pred, what, self.proc, "mmctl run", self.log_text, timeout)
+        return wait_while_alive(pred, what, self.proc, "mmctl run",
+                                with_ur_program(self.log_text, self.config.parent / "sim.sock"),
+                                timeout)
 
 
 @pytest.fixture(scope="module")

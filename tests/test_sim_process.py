@@ -25,7 +25,7 @@ from mmctl.cli import main
 from mmctl.errors import IpcError
 from mmctl.runtime.ipc import ControlClient, request
 from simconfig import LOAD_PROOF, write_sim_config
-from waiting import wait_while_alive
+from waiting import wait_while_alive, with_ur_program
 
 pytestmark = pytest.mark.timeout(600)
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,7 +61,8 @@ class Sim:
         return self.out.read_text(errors="replace")
 
     def wait_for(self, pred: Any, what: str, timeout: float = 180.0) -> Any:
-        return wait_while_alive(pred, what, self.proc, "mmctl sim", self.log_text, timeout)
+        return wait_while_alive(pred, what, self.proc, "mmctl sim",
+                                with_ur_program(self.log_text, self.socket), timeout)
 
     def kill(self) -> None:
         if self.proc.poll() is None:
@@ -345,7 +346,7 @@ def test_a_can_link_cut_under_the_armed_daemon_stops_and_comes_back_on_enable(
         sim.call("fault", name=f"{device}_unplugged", on=True)
         sim.wait_for(lambda: daemon_status()["state"] == "fault", "the fault")
         st = daemon_status()
-        assert st["fault"] == cause, st
+        assert st["fault"] == cause, with_ur_program(lambda: str(st), sim.socket)()
         sim.wait_for(at_rest, "the arm and the wheels to come to rest")
         with pytest.raises(Exception, match="did not reconnect|refused to enable"):
             request(sock, "enable", timeout=60.0)

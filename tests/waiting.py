@@ -39,3 +39,19 @@ def wait_while_alive(pred: Callable[[], Any], what: str, proc: subprocess.Popen[
                                  f"{what}:\n{log_text()[-4000:]}")
         time.sleep(0.05)
     raise AssertionError(f"timed out waiting for {what}\n{log_text()[-4000:]}")
+
+
+def with_ur_program(log_text: Callable[[], str], sim_socket: Any) -> Callable[[], str]:
+    """``log_text`` followed by the simulated UR's program events (started, stopped or
+    paused, and why: its RTDE watchdog, a joint limit), asked of the simulation at
+    ``sim_socket``: what a failed wait most needs and the daemon's log cannot say."""
+    from mmctl.errors import IpcError
+    from mmctl.runtime.ipc import request
+
+    def text() -> str:
+        try:
+            events = request(sim_socket, "log", timeout=10.0, since=0.0)["program"]
+        except (IpcError, OSError, KeyError) as exc:
+            events = f"(not known: {exc})"
+        return f"{log_text()}\nthe UR's program events [controller time, text]: {events}"
+    return text

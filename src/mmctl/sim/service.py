@@ -33,6 +33,7 @@ from mmctl.config import Config
 from mmctl.errors import MmctlError
 from mmctl.runtime.ipc import ControlServer, Peer
 from mmctl.runtime.sim_link import sim_socket_path
+from mmctl.sim.fake_ur.log import CommandKind
 from mmctl.sim.world import FAULTS, SimWorld
 
 log = structlog.get_logger("mmctl.sim")
@@ -253,19 +254,22 @@ class SimService:
 
     def _log(self, req: Mapping[str, Any]) -> dict[str, Any]:
         """The fakes' logs from ``since`` on (CLOCK_MONOTONIC [s], ``time.monotonic()``
-        of any process here): UR commands as [seq, kind, received, qd], per drive
-        [received, target counts/s], and the sensor's push steps [step, the time of the
-        first sample that carried it]."""
+        of any process here): UR commands as [seq, kind, received, qd], the UR's
+        program events as [controller time, text] (started, stopped and why, paused by
+        its RTDE watchdog: all of them, they are few), per drive [received, target
+        counts/s], and the sensor's push steps [step, the time of the first sample that
+        carried it]."""
         check_fields("log", req)
         since = json_number("log", "since", req.get("since", 0.0), 0.0, math.inf, "s")
         w = self.world
         cmds = w.ur.commands()
         ur = [[c.seq, c.kind.value, c.received, None if c.qd is None else list(c.qd)]
               for c in cmds if c.received is not None and c.received >= since]
+        program = [[c.controller_time, c.text] for c in cmds if c.kind is CommandKind.PROGRAM]
         ids = self.cfg.base.canopen.node_ids
         drives = {str(nid): [e for e in w.drives.command_log(nid) if e[0] >= since]
                   for nid in ids}
-        return {"ur": ur, "drives": drives,
+        return {"ur": ur, "program": program, "drives": drives,
                 "steps": [s for s in w.step_samples if s[1] >= since]}
 
 
