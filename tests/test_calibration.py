@@ -26,7 +26,11 @@ from mmctl.commands.calibrate_tool import report, snippet
 from mmctl.commands.yaml_edit import set_entries
 from mmctl.config import config_from_dict, default_config, load_config
 from mmctl.control.calibration import (
+    CHECK_ANGLE,
+    CHECK_SKEW,
     CONDITION_WARN,
+    SETTLE_TIMEOUT,
+    UNCHECKED_HOLD,
     Move,
     ToolCalibration,
     design,
@@ -176,7 +180,8 @@ def test_a_move_is_a_synchronised_trapezoid_within_speed_and_acceleration() -> N
 def _ideal_run(cfg: Any, push: np.ndarray | None = None, push_at: float = 1e9,
                base_drift: float = 0.0, scaling: float = 1.0, pose_gaps: int = 0,
                tell_repeats: bool = True, late_sensor: bool = False,
-               late_pose: float = 0.0, clock_jump: tuple[float, float] = (1e9, 0.0)
+               late_pose: float = 0.0, clock_jump: tuple[float, float] = (1e9, 0.0),
+               starved_from: float = 1e9, commands: list[tuple[float, np.ndarray]] | None = None
                ) -> tuple[ToolCalibration, float]:
     """The routine on an arm that follows speedJ (times ``scaling``, the UR's speed
     slider) on a 4 rad/s^2 ramp, and the simulated sensor (sim.handle_*), 500 Hz.
@@ -189,7 +194,9 @@ def _ideal_run(cfg: Any, push: np.ndarray | None = None, push_at: float = 1e9,
     that much old (a starved arm link draining its backlog), with its controller time
     told (unless ``tell_repeats`` is False); ``clock_jump`` (at [s], by [s]): from then
     on the controller's clock is that much behind ours (a simulated controller that
-    dropped steps under load)."""
+    dropped steps under load); ``starved_from`` [s]: from then on every wrench is the one
+    measured then, its age told (a sensor link that no longer gets the CPU), the poses
+    new; ``commands``: (time, command) of each cycle are appended to it."""
     model = RobotModel(cfg.robot)
     sensor = HandleSensor(cfg)
     q = np.r_[np.asarray(cfg.robot.q_des), 0.0, 0.0, 0.0]
@@ -211,7 +218,7 @@ def _ideal_run(cfg: Any, push: np.ndarray | None = None, push_at: float = 1e9,
         raw = sensor.measure(force, 0.0, model.fk_base(q, "sensor").rotation)
         gap = round(t / dt) % 500 < pose_gaps
         age = 0.0
-        if gap and late_sensor:
+        if t >= starved_from or (gap and late_sensor):
             if late is None:
                 late = (raw, t)
             raw, age = late[0], t - late[1]
@@ -233,6 +240,8 @@ def _ideal_run(cfg: Any, push: np.ndarray | None = None, push_at: float = 1e9,
                        pose_time=pose_time + 100.0 - (clock_jump[1] if t >= clock_jump[0]
                                                       else 0.0) if tell_repeats else None)
         assert np.abs(cmd).max() <= max(plan.speeds) + 1e-12
+        if commands is not None:
+            commands.append((t, cmd.copy()))
         if not gap:
             qd[:6] += np.clip(scaling * cmd - qd[:6], -4.0 * dt, 4.0 * dt)
         q[:6] += qd[:6] * dt
@@ -300,6 +309,30 @@ def test_a_repeated_arm_pose_or_a_late_sample_is_no_push() -> None:
     cal, t = _ideal_run(cfg, push=np.array([0.0, 8.0, 0.0]), push_at=4.1, pose_gaps=250)
     assert cal.phase == "aborted" and t == pytest.approx(4.5, abs=0.01), t
     assert "on the handle beyond its weight" in (cal.error or "")
+
+
+def test_a_routine_that_cannot_check_for_a_hand_holds_the_arm_then_aborts() -> None:
+    """A machine so busy that no wrench comes within the check's skew of a pose (CI under
+    load: a whole 3-s push during the moves went unchecked and the routine finished):
+    the arm is held within UNCHECKED_HOLD, and the routine aborts after SETTLE_TIMEOUT."""
+    cfg = config_from_dict(SIM_HANDLE)
+    cmds: list[tuple[float, np.ndarray]] = []
+    cal, _ = _ideal_run(cfg, commands=cmds)  # the same routine, checked throughout
+    moving = [t for t, c in cmds if np.abs(c).max() > 0.1]
+    starved = moving[len(moving) // 2]  # in the middle of a move
+    cmds.clear()
+    cal, t = _ideal_run(cfg, starved_from=starved, commands=cmds)
+    assert cal.phase == "aborted" and "too busy to calibrate safely" in (cal.error or ""), cal.error
+    # the last checked pair: at most CHECK_SKEW after the starvation began (the skew
+    # grows one period per cycle), so the abort comes SETTLE_TIMEOUT after it
+    assert starved < t - SETTLE_TIMEOUT <= starved + CHECK_SKEW, (starved, t)
+    held = [np.abs(c).max() for s, c in cmds if s > starved + CHECK_SKEW + UNCHECKED_HOLD]
+    assert held and max(held) == 0.0, max(held)
+    assert max(np.abs(c).max() for s, c in cmds if s < starved) > 0.1  # it was moving
+    # moving, the hold comes sooner: once the skew turned the wrist by CHECK_ANGLE
+    speed = max(np.abs(c).max() for s, c in cmds if starved - 0.01 < s < starved)
+    soon = starved + CHECK_ANGLE / speed + UNCHECKED_HOLD + 0.005
+    assert max(np.abs(c).max() for s, c in cmds if soon < s) == 0.0
 
 
 def test_a_push_or_a_moving_base_aborts_the_routine() -> None:
@@ -516,8 +549,11 @@ def test_a_push_during_calibration_stops_the_robot(daemon: Daemon,
     rep = daemon.wait_for(lambda: (r := daemon.call("calibrate", action="status"))["phase"]
                           == "aborted" and r, "the calibration aborted")
     assert "on the handle beyond its weight" in rep["error"], rep
-    st = daemon.call("status")
-    assert st["state"] == "disarmed" and st["commands"]["stop"] > stops
+    # the stop went out in the cycle that found the push; the next cycle's update takes
+    # the Disable (a starved loop's next cycle can come after this status request)
+    st = daemon.wait_for(lambda: (s := daemon.call("status"))["state"] == "disarmed" and s,
+                         "the daemon disarmed", timeout=30)
+    assert st["commands"]["stop"] > stops, st["commands"]
     # the arm is at rest, and stays there (the push goes on for seconds)
     daemon.wait_for(lambda: np.abs(daemon.sim("status")["arm_qd"]).max() < 1e-3, "the arm at rest",
                     timeout=30)

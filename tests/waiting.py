@@ -43,15 +43,23 @@ def wait_while_alive(pred: Callable[[], Any], what: str, proc: subprocess.Popen[
 
 def with_ur_program(log_text: Callable[[], str], sim_socket: Any) -> Callable[[], str]:
     """``log_text`` followed by the simulated UR's program events (started, stopped or
-    paused, and why: its RTDE watchdog, a joint limit), asked of the simulation at
-    ``sim_socket``: what a failed wait most needs and the daemon's log cannot say."""
+    paused, and why: its RTDE watchdog, a joint limit) and where the robot is, asked of
+    the simulation at ``sim_socket``: what a failed wait most needs and the daemon's log
+    cannot say."""
     from mmctl.errors import IpcError
     from mmctl.runtime.ipc import request
 
     def text() -> str:
         try:
-            events = request(sim_socket, "log", timeout=10.0, since=0.0)["program"]
+            # (since now: no commands, which can be too many for one reply; the program
+            # events come whole)
+            events = request(sim_socket, "log", timeout=10.0,
+                             since=time.monotonic())["program"]
+            st = request(sim_socket, "status", timeout=10.0)
+            where = {k: st.get(k) for k in ("arm_q", "arm_qd", "base_pose", "handle_world",
+                                            "wheel_velocities", "push", "faults")}
         except (IpcError, OSError, KeyError) as exc:
-            events = f"(not known: {exc})"
-        return f"{log_text()}\nthe UR's program events [controller time, text]: {events}"
+            events, where = f"(not known: {exc})", {}
+        return (f"{log_text()}\nthe UR's program events [controller time, text]: {events}"
+                f"\nthe simulation now: {where}")
     return text

@@ -75,9 +75,17 @@ POSITION_TOLERANCE = 0.005
 VELOCITY_TOLERANCE = 0.005
 #: [s] how long a pose may take to settle after its move's planned end
 SETTLE_TIMEOUT = 5.0
-#: [s] the oldest wrench the push check compares with this cycle's pose: five periods
-#: at 500 Hz, the sensor's default stale_timeout (the wrist turns 0.01 rad at 1 rad/s)
-CHECK_SKEW = 0.01
+#: [rad] the most the wrist may have turned between a pose and the wrench the push check
+#: compares it with: the pair's skew times the fastest joint's speed (1.1 kg turned by
+#: 0.01 rad is 0.1 N, 2 % of the default abort_force)
+CHECK_ANGLE = 0.01
+#: [s] the oldest pose or wrench the push check uses (the arm at rest; moving,
+#: CHECK_ANGLE decides: 10 ms at 1 rad/s)
+CHECK_SKEW = 0.25
+#: [s] without a checked pair for this long the routine holds the arm (zero command,
+#: its motion's clock stands) until one comes: the wrist never moves unchecked for
+#: longer (a starved machine, seen in CI, let a whole 3-s push pass unchecked)
+UNCHECKED_HOLD = 0.1
 #: [s] the pose lag's floor is the smallest over the last one to two of these: longer
 #: than a starved arm link's backlog (hundreds of ms), short enough to follow clocks
 #: that drift apart (a simulated controller's under load)
@@ -522,6 +530,7 @@ class ToolCalibration:
         self._move: Move | None = None
         self._last_seq: int | None = None
         self._checked_seq: int | None = None  # the last sample the push check saw
+        self._checked_at = now  # when the push check last passed
         # the smallest now - pose_time [s] of this and the last LAG_WINDOW (two buckets:
         # a clock that drifts, as a simulated controller's under load, is followed)
         self._lag_bucket = (math.nan, math.inf, math.inf)  # (start, this, last)
@@ -569,23 +578,25 @@ class ToolCalibration:
         stamp of ``q`` [s, its own clock] (None: not known).  Returns the arm's velocity
         command (6,) [rad/s] (zero once it is no longer :attr:`running`).
 
-        The push check compares a wrench with a pose of its time only: a new pose and a
-        sample at most :data:`CHECK_SKEW` old.  Else the wrist has turned between the two
-        (at 1 rad/s, 0.5 s of a starved loop's repeated poses or of a starved sensor
-        link's late sample turn the handle's weight into a 5-8 N "push": both seen in CI
-        runs under load); the check waits for the next pair (both stream at the loop's
-        rate).  A pose that is new to the loop can still be late: a starved arm link
-        draining a backlog hands over one old sample per cycle.  Its lag
+        The push check compares a wrench with a pose of its time only: a new pose, and a
+        pair whose skew (the later of the two's delays, at most :data:`CHECK_SKEW`) times
+        the fastest joint's speed is at most :data:`CHECK_ANGLE`.  Else the wrist has
+        turned between the two (at 1 rad/s, 0.5 s of a starved loop's repeated poses or
+        of a starved sensor link's late sample turn the handle's weight into a 5-8 N
+        "push": both seen in CI runs under load); the check waits for the next pair
+        (both stream at the loop's rate).  A pose that is new to the loop can still be
+        late: a starved arm link draining a backlog hands over one old sample per
+        cycle.  Its lag
         (``now - pose_time``) is judged against the smallest of the last seconds
         (:data:`LAG_WINDOW`; the controller's clock and ours differ by a near constant,
-        which the smallest lag takes out): a pose more than :data:`CHECK_SKEW` later
-        than that is not checked either."""
+        which the smallest lag takes out), and counts in the skew.  Without a checked
+        pair for :data:`UNCHECKED_HOLD` the arm is held (zero command, the motion's clock
+        stands: a still wrist makes any fresh pair checkable) until one comes; after
+        :data:`SETTLE_TIMEOUT` without one the routine aborts."""
         dt = max(now - self._last_now, 0.0)
         self._last_now = now
         if not self.running:
             return self._zero
-        if not hold:
-            self._tau += dt * min(max(scaling, 0.0), 1.0) if math.isfinite(scaling) else 0.0
         base = np.asarray(q[6:9], dtype=float)
         moved = float(np.hypot(*(base[:2] - self.base0[:2])))
         turned = abs(math.remainder(float(base[2] - self.base0[2]), 2.0 * math.pi))
@@ -596,18 +607,28 @@ class ToolCalibration:
         r = self.model.fk_base(q, "sensor").rotation
         fresh = sequence != self._last_seq
         self._last_seq = sequence
-        timely = pose_new
+        q_a = np.asarray(q[:6], dtype=float)
+        qd_a = np.asarray(qd[:6], dtype=float)
+        skew = sample_age
         if pose_time is not None and math.isfinite(pose_time):
             lag = now - pose_time
-            timely = timely and lag - self._lag_floor(lag, now) <= CHECK_SKEW
-        if timely and sample_age <= CHECK_SKEW and sequence != self._checked_seq:
+            skew = max(skew, lag - self._lag_floor(lag, now))
+        timely = pose_new and skew <= CHECK_SKEW \
+            and skew * float(np.abs(qd_a).max()) <= CHECK_ANGLE
+        if timely and sequence != self._checked_seq:
             self._checked_seq = sequence
             if not self._check(raw, r, now):
                 return self._zero
-        if hold:
+            self._checked_at = now
+        unchecked = now - self._checked_at
+        if unchecked > SETTLE_TIMEOUT:
+            self.abort(f"the push check found no arm pose and wrench sample of the same "
+                       f"time for {unchecked:.1f} s (at pose {self.index + 1}): the "
+                       "machine is too busy to calibrate safely", now)
             return self._zero
-        q_a = np.asarray(q[:6], dtype=float)
-        qd_a = np.asarray(qd[:6], dtype=float)
+        if hold or unchecked > UNCHECKED_HOLD:
+            return self._zero
+        self._tau += dt * min(max(scaling, 0.0), 1.0) if math.isfinite(scaling) else 0.0
         if self.phase in ("moving", "returning"):
             assert self._move is not None
             t = self._tau - self._t0
