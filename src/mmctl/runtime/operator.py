@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import structlog
 
 from mmctl.control.params import SETTABLE, get_value
+from mmctl.control.safety import EnableRefused, plain
 from mmctl.control.update import (
     BeginEnable,
     Disable,
@@ -173,6 +174,14 @@ class Operator:
         An enable reported as failed (refused, the reconnect failed, the budget ran out)
         never takes effect later: a base enabled for an enable that then failed is
         disabled again."""
+        try:
+            return self._enable(budget)
+        except EnableRefused as exc:  # what the conditions say, for whoever reads the log
+            log.warning("enable_refused", conditions={
+                k: {d: plain(v) for d, v in det.items()} for k, det in exc.details.items()})
+            raise
+
+    def _enable(self, budget: float) -> dict[str, object]:
         deadline = time.monotonic() + budget
         links = self.rt.on_loop(BeginEnable(), budget)
         assert isinstance(links, tuple)  # (BeginEnable's reply: the links' names)
