@@ -269,9 +269,10 @@ class _CountingPlant(WheelPlant):
 
     steps = 0
 
-    def _integrate(self, pose: np.ndarray, step: np.ndarray) -> None:  # type: ignore[override]
+    def _integrate(self, pose: list[float], dx: float, dy: float,  # type: ignore[override]
+                   dyaw: float) -> None:
         type(self).steps += 1
-        WheelPlant._integrate(pose, step)
+        WheelPlant._integrate(pose, dx, dy, dyaw)
 
 
 class _SteppingPlant(WheelPlant):

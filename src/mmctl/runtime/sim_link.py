@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -77,7 +78,9 @@ class SimLink:
         try:
             st = self.call("status", timeout=2.0)
         except IpcError:
-            st = None
+            st = self._wait_for_a_slow_one(should_stop)
+            if st is None and should_stop():
+                return
         if st is not None:
             self.pid = st.get("pid")
             log.info("sim_attached", socket=str(self.path), pid=self.pid)
@@ -106,6 +109,33 @@ class SimLink:
                                  f"{self.cfg.sim.ready_timeout:g} s")
             time.sleep(0.05)
         log.info("sim_started", socket=str(self.path), pid=self.pid)
+
+    def _wait_for_a_slow_one(self, should_stop: Callable[[], bool]) -> dict[str, Any] | None:
+        """A simulation that accepts connections on the socket but did not answer in
+        time (a starved one: seen in CI with both cores busy, where the daemon then
+        started a second simulation that could only fail on the socket in use): its
+        status once it answers, within ``sim.ready_timeout``; None when nothing listens
+        there (start one)."""
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        probe.settimeout(1.0)
+        try:
+            probe.connect(str(self.path))
+        except OSError:
+            return None  # no socket, or a stale one: nothing runs there
+        finally:
+            probe.close()
+        log.warning("sim_slow_to_answer", socket=str(self.path))
+        deadline = time.monotonic() + self.cfg.sim.ready_timeout
+        while not should_stop():
+            try:
+                st: dict[str, Any] = self.call("status", timeout=5.0)
+                return st
+            except IpcError as exc:
+                if time.monotonic() > deadline:
+                    raise MmctlError(f"the simulated robot on {self.path} accepts connections "
+                                     f"but did not answer within sim.ready_timeout = "
+                                     f"{self.cfg.sim.ready_timeout:g} s ({exc})") from None
+        return None
 
     def _spawn(self) -> None:
         from mmctl.runtime import logging as mmctl_logging

@@ -163,60 +163,86 @@ class WheelPlant:
             return out
 
     def advance(self, now: float) -> None:
-        """Integrate up to monotonic time ``now`` [s] in steps of at most 1 ms."""
+        """Integrate up to monotonic time ``now`` [s] in steps of at most 1 ms.
+
+        The four wheels are stepped in plain floats (numpy's per-call cost on 4-element
+        arrays made a step ~1 ms of CPU on a busy machine: a moving base cost the
+        simulation a whole core, and a status request waiting for this lock went
+        unanswered for a minute); the arrays are the state between calls."""
         tau = self.dynamics.velocity_tau
         with self.lock:
-            if self.t < now and self._at_rest():
+            if not self.t < now:
+                return
+            if self._at_rest():
                 self.t = now  # nothing moves nor will: no steps to take
                 return
-            while self.t < now:
-                h = min(SUBSTEP, now - self.t)
-                pending = self.pending
-                while pending and pending[0][0] <= self.t:
+            t = self.t
+            pending = self.pending
+            omega, demand = self.omega.tolist(), self.demand.tolist()
+            target, theta = self.target.tolist(), self.theta.tolist()
+            enabled, coasting = self.enabled.tolist(), self.coasting.tolist()
+            accel, decel = self.accel.tolist(), self.decel.tolist()
+            stop_decel = self.stop_decel.tolist()
+            wd = self.watchdog
+            expiry = None if wd is None else [c + wd for c in self.last_command.tolist()]
+            p_odo = self._p
+            kx, ky, kw = self._k.tolist()
+            pose, odo_pose = self.pose.tolist(), self.odometry_pose.tolist()
+            mu_tau = COAST_FRICTION * COAST_TIME_CONSTANT
+            lag_h = math.nan  # the step the lag's factors were computed for
+            e = g = 0.0
+            dth = [0.0] * 4
+            while t < now:
+                h = min(SUBSTEP, now - t)
+                while pending and pending[0][0] <= t:
                     _, wheel, value = pending.popleft()
-                    self.target[wheel] = value
-                if pending and pending[0][0] < self.t + h:
-                    h = max(pending[0][0] - self.t, 1e-9)
-                if self.watchdog is not None:
-                    expiry = self.last_command + self.watchdog
-                    due = expiry[(expiry > self.t) & (expiry < self.t + h)]
-                    if due.size:
-                        h = max(float(due.min()) - self.t, 1e-9)
-                    live = self.enabled & (self.t < expiry)
+                    target[wheel] = value
+                if pending and pending[0][0] < t + h:
+                    h = max(pending[0][0] - t, 1e-9)
+                if expiry is not None:
+                    due = [x for x in expiry if t < x < t + h]
+                    if due:
+                        h = max(min(due) - t, 1e-9)
+                    live = [on and t < x for on, x in zip(enabled, expiry, strict=True)]
                 else:
-                    live = self.enabled
-                tgt = np.where(live, self.target, 0.0)
-                dv = tgt - self.demand
-                slowing = dv * self.demand < 0.0
-                rate = np.where(slowing, self.decel, self.accel)
-                ramping = ~np.isnan(self.stop_decel)
-                if ramping.any():
-                    rate = np.where(ramping, self.stop_decel, rate)
-                    dv = np.where(ramping, -self.demand, dv)
-                rate = rate * h
-                demand = self.demand + np.clip(dv, -rate, rate)
-                if tau > 0.0:
+                    live = enabled
+                if tau > 0.0 and h != lag_h:
                     # first-order lag, exact for a demand linear over the step
-                    e = math.exp(-h / tau)
+                    lag_h, e = h, math.exp(-h / tau)
                     g = -tau / h * math.expm1(-h / tau)  # (tau / h)(1 - e), accurately
-                    new = demand + (self.omega - self.demand) * e - (demand - self.demand) * g
-                    new = np.where((demand == 0.0) & (np.abs(new) < STANDSTILL), 0.0, new)
-                else:
-                    new = demand
-                if self.coasting.any():
-                    mu_tau = COAST_FRICTION * COAST_TIME_CONSTANT
-                    free = np.maximum((np.abs(self.omega) + mu_tau)
-                                      * math.exp(-h / COAST_TIME_CONSTANT) - mu_tau, 0.0)
-                    new = np.where(self.coasting, np.sign(self.omega) * free, new)
-                    demand = np.where(self.coasting, new, demand)
-                dtheta = 0.5 * (self.omega + new) * h
-                self.omega = new
-                self.demand = new if tau == 0.0 else demand
-                self.theta += dtheta
-                odo = self._p @ dtheta
-                self._integrate(self.odometry_pose, odo)
-                self._integrate(self.pose, self._k * odo)
-                self.t += h
+                free_e = math.exp(-h / COAST_TIME_CONSTANT) if True in coasting else 0.0
+                for i in range(4):
+                    d0, w0 = demand[i], omega[i]
+                    dv = (target[i] if live[i] else 0.0) - d0
+                    ramp = stop_decel[i]
+                    if not math.isnan(ramp):  # ramping to rest
+                        rate, dv = ramp * h, -d0
+                    else:
+                        rate = (decel[i] if dv * d0 < 0.0 else accel[i]) * h
+                    d1 = d0 + min(max(dv, -rate), rate)
+                    if tau > 0.0:
+                        w1 = d1 + (w0 - d0) * e - (d1 - d0) * g
+                        if d1 == 0.0 and abs(w1) < STANDSTILL:
+                            w1 = 0.0
+                    else:
+                        w1 = d1
+                    if coasting[i]:
+                        free = max((abs(w0) + mu_tau) * free_e - mu_tau, 0.0)
+                        w1 = free if w0 > 0.0 else -free if w0 < 0.0 else 0.0
+                        d1 = w1
+                    dth[i] = 0.5 * (w0 + w1) * h
+                    omega[i] = w1
+                    demand[i] = w1 if tau == 0.0 else d1
+                    theta[i] += dth[i]
+                # (numpy's product: its rounding is the odometry's, bit for bit)
+                dx, dy, dyaw = (p_odo @ np.array(dth)).tolist()
+                self._integrate(odo_pose, dx, dy, dyaw)
+                self._integrate(pose, kx * dx, ky * dy, kw * dyaw)
+                t += h
+            self.t = t
+            self.omega[:], self.demand[:], self.target[:] = omega, demand, target
+            self.theta[:] = theta
+            self.pose[:], self.odometry_pose[:] = pose, odo_pose
 
     def _at_rest(self) -> bool:
         """Every wheel stands, its demand is 0 and stays 0: no target it tracks (the
@@ -228,13 +254,14 @@ class WheelPlant:
                     or (self.enabled & (self.target != 0.0)).any())
 
     @staticmethod
-    def _integrate(pose: Vec, step: Vec) -> None:
-        """Add a base-frame displacement (dx, dy [m], dyaw [rad]) to ``pose`` (world
-        frame), rotated with the mid-step yaw."""
-        dx, dy, dyaw = step
+    def _integrate(pose: list[float], dx: float, dy: float, dyaw: float) -> None:
+        """Add a base-frame displacement (dx, dy [m], dyaw [rad]) to ``pose`` (x, y,
+        yaw, world frame), rotated with the mid-step yaw."""
         mid = pose[2] + 0.5 * dyaw
         c, s = math.cos(mid), math.sin(mid)
-        pose += (c * dx - s * dy, s * dx + c * dy, dyaw)
+        pose[0] += c * dx - s * dy
+        pose[1] += s * dx + c * dy
+        pose[2] += dyaw
 
     def command(self, wheel: int, omega: float, now: float) -> None:
         """New target [rad/s] for ``wheel`` sent at ``now`` (also feeds its watchdog);
