@@ -40,7 +40,9 @@ def rig(request: pytest.FixtureRequest) -> Iterator[tuple[Base, Any]]:
                         "heartbeat_timeout": 5.0,
                         "sdo_timeout": 5.0},
             "serial": {"link_timeout": 5.0, "timeout": 1.0},
-            "command_watchdog": 2.0,  # a stalled test is not a dead master
+            # a stalled test is not a dead master (2 s: a drive faulted 0x8250, RPDO timeout,
+            # during an enable that took 3.5 s with both cores busy)
+            "command_watchdog": 10.0,
         }})
         fake: Any = FakeDrives(cfg) if kind == "canopen" else FakeSerialBridge(cfg)
         stack.enter_context(fake)
