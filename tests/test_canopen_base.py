@@ -257,10 +257,11 @@ def test_silent_drive_is_detected_within_the_heartbeat_timeout() -> None:
                   f"{hb.heartbeat_timeout * 1e3:.0f} ms)")
             assert fault.cause is FaultCause.DRIVE_HEARTBEAT
             assert fault.details["node_id"] == 3
-            # (reported rounded: a detection just past the timeout may read as equal)
+            # not before the timeout, by the master's own count since the last heartbeat
+            # it heard (reported rounded: just past the timeout may read as equal); the
+            # test's clock cannot say it: on a loaded machine that heartbeat came more
+            # than a period before the silence (0.470 s measured against 0.48 s)
             assert fault.details["silent_for"] >= hb.heartbeat_timeout
-            # cannot be sooner than the timeout after the last heartbeat sent
-            assert elapsed >= hb.heartbeat_timeout - hb.heartbeat_period
             assert [d.link for d in base.drive_status()][2] == "SILENT"
             base.stop()
             # disable() tries every drive: the silent one costs its SDO timeout, is named

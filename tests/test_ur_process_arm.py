@@ -104,7 +104,13 @@ def test_a_stream_frozen_beyond_ur_rtdes_own_timeout_never_takes_the_daemon_down
             fake.freeze_stream(True)
             try:
                 fault = cycles(arm, 5000, np.array([0.1, 0, 0, 0, 0, 0]))
-                assert fault is not None and fault.cause is FaultCause.ARM_STALE, fault
+                # the parent's count of stale reads comes first, unless this loop reads
+                # so slowly (both cores busy) that the child's own stale fault has
+                # already ended it (it sent speedJ(0) first): either way the arm stops
+                assert fault is not None and (
+                    fault.cause is FaultCause.ARM_STALE
+                    or (fault.cause is FaultCause.ARM_DISCONNECTED
+                        and "arm process ended" in str(fault))), fault
                 time.sleep(3.5)
             finally:
                 fake.freeze_stream(False)
