@@ -390,7 +390,20 @@ def test_killed_controller_is_detected_and_reconnect_after_restart(
     # at worst the stale rule fires: the last fresh sample and its repeats, STALE in all
     assert repeats <= STALE
     print(f"killed controller: {fault.cause.value} on cycle {len(states) + 1} after the kill")
-    arm.stop()  # link down: nothing sent, returns at once (speedStop would hang ~300 s)
+    # stop() while ur_rtde still thinks the link up sends speedJ(0) into the reset
+    # socket: the crash race above (a loaded run segfaulted in this very call, taking
+    # the test worker down); what this line tests is stop() on a link ur_rtde knows is
+    # down, so it waits for that first
+    down = False
+    deadline = time.monotonic() + 30.0
+    while not down and time.monotonic() < deadline:
+        try:
+            arm.read_state()
+        except SafetyFault as exc:
+            down = exc.cause is FaultCause.ARM_DISCONNECTED
+        time.sleep(PERIOD)
+    if down:
+        arm.stop()  # link down: nothing sent, returns at once (speedStop would hang ~300 s)
     with pytest.raises(SafetyFault) as again:
         arm.read_state()
     assert again.value.cause is FaultCause.ARM_DISCONNECTED or fault.cause is FaultCause.ARM_STALE
