@@ -36,6 +36,7 @@ COMMANDS: list[tuple[str, str, str]] = [
      "change a control parameter at run time (admittance, caps, IDK gains)"),
     ("get", "mmctl.commands.param:get", "read a key of the running configuration"),
     ("tare", "mmctl.commands.tare", "re-zero the force/torque sensor"),
+    ("model", "mmctl.commands.model", "the robot's URDF, and the distances between its parts"),
     ("pose", "mmctl.commands.pose", "record the arm's pose as the preferred one (robot.q_des)"),
     ("stop", "mmctl.commands.stop", "shut the daemon down"),
     ("replay", "mmctl.commands.replay",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 from mmctl.config.schema import param, section
+from mmctl.errors import ConfigError
 
 #: Preferred ("ergonomic") arm configuration [rad]: handle in front of the base at
 #: roughly elbow height of a standing person.
@@ -69,4 +70,45 @@ class RobotConfig:
     full_inertia: bool = param(
         False, doc="use the full coupled whole-body inertia instead of blockdiag(M_a, M_b)"
     )
+    # -- the body's collision shapes (docs/hand-guiding.md, "The robot's body") --------
+    link_radii: tuple[float, ...] = param(
+        (0.0764, 0.0764, 0.058, 0.047, 0.047, 0.0445), unit="m", shape=(6,), ge=0.01, le=0.3,
+        doc="radius of the capsule around each UR10e link (shoulder, upper arm, forearm, "
+        "wrist 1, wrist 2, wrist 3); default: the largest cross-section of UR's own "
+        "collision meshes (ur_description, meshes/ur10e/collision)",
+        why="from a 1 cm rod to a 30 cm housing (76.4 is millimetres)")
+    sensor_radius: float = param(
+        0.041, unit="m", ge=0.01, le=0.2,
+        doc="radius of the F/T sensor's body (ATI Axia80: 82 mm across); its height is "
+        "sensor_offset's z",
+        why="a sensor within 20 cm of the flange axis (41 is millimetres)")
+    handle_radius: float = param(
+        0.05, unit="m", ge=0.005, le=0.3,
+        doc="radius of the capsule from the sensor to the handle point (tool_offset): the "
+        "handle and the hand around it",
+        why="a bare rod to a two-handed grip (50 is millimetres)")
+    deck_size: tuple[float, ...] = param(
+        (0.978, 0.776, 0.56), unit="m", shape=(3,), ge=(0.1, 0.1, 0.05), le=(3.0, 3.0, 2.0),
+        doc="the base's body as a box from the floor up (length x, width y, height z) in "
+        "base_link; the arm stands on its top (arm_mount's z >= the height)",
+        why="a cart's footprint up to 3 x 3 m, up to 2 m tall (978 is millimetres)")
+    deck_center: tuple[float, ...] = param(
+        (0.0, 0.0), unit="m", shape=(2,), ge=-2.0, le=2.0,
+        doc="the deck box's centre (x, y) in base_link",
+        why="within 2 m of base_link (the deck carries the arm)")
+    cabinet_size: tuple[float, ...] = param(
+        (0.0, 0.0, 0.0), unit="m", shape=(3,), ge=0.0, le=3.0,
+        doc="a mast or cabinet on the deck as a box (x, y, z sizes); all zero: none",
+        why="up to 3 m on a side; 0 switches it off")
+    cabinet_center: tuple[float, ...] = param(
+        (0.0, 0.0, 0.0), unit="m", shape=(3,), ge=-3.0, le=3.0,
+        doc="the cabinet box's centre in base_link",
+        why="on or next to the base, within 3 m of base_link")
+
+    def validate(self, path: str, source: str | None) -> None:
+        if self.arm_mount[2] < self.deck_size[2] - 1e-9:
+            raise ConfigError(f"{path}.deck_size" if path else "deck_size", self.deck_size,
+                              f"its height {self.deck_size[2]:g} m must not exceed the arm's "
+                              f"mount height arm_mount z = {self.arm_mount[2]:g} m (the arm "
+                              "stands on the deck)", source)
 

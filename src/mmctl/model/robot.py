@@ -132,6 +132,11 @@ class RobotModel:
         self._J_template = np.zeros((6, NQ))
         self._J_template[:, NA:] = base_jacobian(np.zeros(3))
 
+    @property
+    def mount(self) -> pin.SE3:
+        """The arm's base (UR DH frame 0) in base_link (``robot.arm_mount``, ``_yaw``)."""
+        return self._mount
+
     # --- construction --------------------------------------------------------
     def _add_tool_frames(self, model: pin.Model) -> None:
         flange = model.getFrameId("flange")
