@@ -52,6 +52,8 @@ if TYPE_CHECKING:
 HOST = "scripted-ur"
 PUSH = np.array([20.0, 0.0, 0.0])  # [N] sensor frame: above the dead band, below the limit
 Q_SINGULAR = np.array([0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0])  # stretched up
+#: folded down: the handle inside the base's deck (`mmctl model distances --q ...`)
+Q_SELF_COLLISION = np.array([0.0, -1.2, 2.7, -1.0, 1.57, 0.0])
 ENABLING = {"enabling": {"inputs": [8, 9], "discrepancy_time": 0.021}}  # off the 2 ms grid
 HELD = 1 << 8 | 1 << 9  # both contacts of the enabling switch closed
 STOPPED = 1  # RTDE runtime state: the program is stopped
@@ -599,6 +601,7 @@ CASES = [
     Case("nan_in_q_found_by_the_cycle", FaultCause.NON_FINITE,
          lambda rig: (_set("arm", checks_finite=False)(rig), _nan_q(rig)), _q_des),
     Case("singular_configuration", FaultCause.SINGULAR, _set("arm", q=Q_SINGULAR), _q_des),
+    Case("self_collision", FaultCause.SELF_COLLISION, _set("arm", q=Q_SELF_COLLISION), _q_des),
     # the base
     Case("drive_fault", FaultCause.DRIVE_FAULT, _set("base", drive_fault=True),
          _set("base", drive_fault=False)),

@@ -107,5 +107,6 @@ class FaultCause(str, Enum):
     LOOP_OVERRUN = "loop_overrun"
     NON_FINITE = "non_finite_value"
     SINGULAR = "singular_configuration"
+    SELF_COLLISION = "self_collision"
     ENABLING_DEVICE = "enabling_device_fault"
     INTERNAL = "internal_error"

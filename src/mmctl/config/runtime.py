@@ -119,6 +119,19 @@ class SafetyConfig:
         "rests 6-8 deg from it), so hand guiding never pushes the arm into the singular "
         "fault; moving away is free; 1: the braking ends at the fault's own level",
         why="a fraction of safety.max_condition")
+    collision_check: bool = param(
+        True, doc="self-collision avoidance: brake a command that brings two parts of the "
+        "robot nearer than collision_margin (docs/hand-guiding.md, the robot's body)")
+    collision_margin: float = param(
+        0.05, unit="m", ge=0.005, le=0.3,
+        doc="a command closing two of the robot's parts is braked to rest this far apart "
+        "(the parts' shapes are robot.link_radii and the rest); moving apart is free",
+        why="from 5 mm to 30 cm (50 is millimetres)")
+    collision_tolerance: float = param(
+        0.02, unit="m", ge=0.001, le=0.2,
+        doc="a pair nearer than collision_margin - collision_tolerance is the "
+        "self_collision fault, and enabling is refused while it lasts",
+        why="from a millimetre to 20 cm inside the margin")
 
 
 @section

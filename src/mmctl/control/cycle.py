@@ -148,13 +148,23 @@ class CycleChain:
             if cond > self.max_condition:  # so enabling here is refused
                 return self._idle(state, q, qd, w.f_h, FaultCause.SINGULAR,
                                   {"condition": cond, "q_arm": _pose(q), "qd_arm": _pose(qd)})
+            body = self.controller.body
+            inside = body.inside(q[:6]) if body is not None else None
+            if inside is not None:  # so enabling here is refused too
+                return self._idle(state, q, qd, w.f_h, FaultCause.SELF_COLLISION,
+                                  {"pair": "-".join(inside[0]),
+                                   "distance_m": round(inside[1], 4), "q_arm": _pose(q)})
             return self._idle(state, q, qd, w.f_h, None, {}, taring=w.taring)
         ctl, out = self.controller.step(state.controller,
                                         StepInputs(w.f_h, q, qd, r.dt, not r.held))
         state = state._replace(controller=ctl)
         if out.fault is not None:
-            return self._idle(state, q, qd, w.f_h, out.fault, {
-                "condition": out.condition, "q_arm": _pose(q), "qd_arm": _pose(qd)})
+            details: dict[str, Any] = {"condition": out.condition, "q_arm": _pose(q),
+                                       "qd_arm": _pose(qd)}
+            if out.fault is FaultCause.SELF_COLLISION and out.body is not None:
+                details = {"pair": "-".join(out.body[0]),
+                           "distance_m": round(out.body[1], 4), **details}
+            return self._idle(state, q, qd, w.f_h, out.fault, details)
         # the controller executes speedJ at `scaling` of its speeds (speed slider, reduced
         # mode): the base goes as slowly, so the whole body moves as the IDK solved it
         twist = out.base_twist if scaling >= 1.0 else max(scaling, 0.0) * out.base_twist

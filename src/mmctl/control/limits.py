@@ -76,9 +76,12 @@ class Limited(NamedTuple):
 #: else "acceleration" when the acceleration blend bound the command, else "".
 LIMIT_NAMES: tuple[str, ...] = (
     "", "joint_speed", "joint_position", "base_speed", "base_yaw_rate", "wheel_speed",
-    "ee_speed", "ee_angular_speed", "energy", "acceleration", "singularity", "wall")
+    "ee_speed", "ee_angular_speed", "energy", "acceleration", "singularity", "wall",
+    "self_collision")
 """(``singularity``: the controller's singularity braking, after the limits; ``wall``: a
-virtual wall (:mod:`mmctl.control.walls`), before them, when no limit bound.)"""
+virtual wall (:mod:`mmctl.control.walls`), before them, when no limit bound;
+``self_collision``: the braking before the robot's own body (:mod:`mmctl.control.body`),
+last.)"""
 
 
 class Limits:

@@ -38,6 +38,7 @@ from scipy.linalg import lapack
 from mmctl.config import Config
 from mmctl.config.control import Mode, SwitchMode
 from mmctl.control.admittance import Admittance
+from mmctl.control.body import BodyCheck, BodyState
 from mmctl.control.energy import Energy, kinetic_energy
 from mmctl.control.iso15066 import Caps, derive
 from mmctl.control.limits import Limits
@@ -84,6 +85,8 @@ class ControllerState:
     cycle: int = 0
     reduced: bool = False
     """The reduced limits profile (``limits.reduced_ee_speed``) is selected."""
+    body: BodyState | None = None
+    """The self-collision check's last measure (:mod:`mmctl.control.body`)."""
 
     @property
     def target(self) -> str:
@@ -140,6 +143,9 @@ class StepOutputs(NamedTuple):
     fault: FaultCause | None
     v: Vec
     limit: str = ""
+    body: tuple[tuple[str, str], float] | None = None
+    """The robot's two nearest parts and their distance [m] (:mod:`mmctl.control.body`;
+    None when the check is off or the cycle was refused before it)."""
 
 
 def _target(mode: Mode, switch: SwitchMode) -> str:
@@ -219,6 +225,15 @@ class Controller:
         self.brake_accel = 0.8 * min(min(cfg.limits.joint_acceleration),
                                      cfg.arm.speedj_acceleration)
         self.cond_watch = 1.0 / (20.0 * self.r_stop) ** 2
+        self.body = BodyCheck(cfg, self.model) if cfg.safety.collision_check else None
+        if self.body is not None:
+            near = self.body.body.closest(self.q_des[:6])
+            if near.distance < cfg.safety.collision_margin:
+                raise ConfigError("robot.q_des", list(cfg.robot.q_des),
+                                  f"puts the {near.pair[0]} and the {near.pair[1]} "
+                                  f"{near.distance:.3f} m apart, inside "
+                                  f"safety.collision_margin = {cfg.safety.collision_margin} m "
+                                  "(`mmctl model distances --q ...` lists the pairs)")
         lim = cfg.limits
         self.walls = Walls.from_config(
             cfg.walls, min(self.caps.ee_speed, lim.ee_linear_velocity),
@@ -289,11 +304,13 @@ class Controller:
 
     # --- the cycle -------------------------------------------------------------
     def _fault(self, state: ControllerState, cause: FaultCause, cond: float,
-               weights: tuple[float, ...]) -> tuple[ControllerState, StepOutputs]:
+               weights: tuple[float, ...],
+               body: tuple[tuple[str, str], float] | None = None
+               ) -> tuple[ControllerState, StepOutputs]:
         new = dataclasses.replace(state, v=_Z6, qdot=_Z9, weights=weights,  # type: ignore[arg-type]
                                   cycle=state.cycle + 1)
         out = StepOutputs(_Z6, _Z9, _Z6, _Z3, _ZERO_E, _ZERO_E, 0.0, 0.0, _Z3, _Z3, cond, cause,
-                          _Z6)
+                          _Z6, "", body)
         return new, out
 
     def step(self, state: ControllerState, inp: StepInputs) -> tuple[ControllerState, StepOutputs]:
@@ -357,6 +374,18 @@ class Controller:
             if s_c < 1.0:
                 qdot = s_c * qdot
                 lim = lim._replace(final_scale=lim.final_scale * s_c, limit="singularity")
+        body = None
+        body_state = state.body
+        if self.body is not None:
+            body_state, brake = self.body.brake(state.body, q[:6], qdot[:6], state.cycle)
+            if brake.pair is not None:
+                body = (brake.pair, brake.distance)
+            if brake.fault:
+                return self._fault(state, FaultCause.SELF_COLLISION, cond, weights, body)
+            if brake.scale < 1.0:
+                qdot = brake.scale * qdot
+                lim = lim._replace(final_scale=lim.final_scale * brake.scale,
+                                   limit="self_collision")
         if not math.isfinite(qdot @ qdot + v_d @ v_d):
             return self._fault(state, FaultCause.NON_FINITE, cond, weights)
 
@@ -366,9 +395,10 @@ class Controller:
         v_d.setflags(write=False)
         qdot.setflags(write=False)
         new = ControllerState(v_d, qdot, state.mode, state.switch, weights,  # type: ignore[arg-type]
-                              state.cycle + 1, state.reduced)
+                              state.cycle + 1, state.reduced, body_state)
         out = StepOutputs(v_d, qdot, qdot[:6], qdot[6:], e_meas, e_cmd, lim.scale * lim.final_scale,
-                          lim.accel_scale, kin.p, p_des, cond, None, J.dot(qd_meas), lim.limit)
+                          lim.accel_scale, kin.p, p_des, cond, None, J.dot(qd_meas), lim.limit,
+                          body)
         return new, out
 
     def _singularity_scale(self, q: Vec, qdot: Vec, cond: float) -> float:

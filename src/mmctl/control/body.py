@@ -1,0 +1,244 @@
+"""Self-collision avoidance: the robot is never pushed into its own body.
+
+Every cycle the controller measures the distance of each pair of the robot's parts
+that can meet (:data:`mmctl.model.geometry.PAIRS`: coal through Pinocchio's
+``GeometryModel``, about 10 us for all of them) and, for the pairs nearer than
+``collision_margin`` + :data:`WATCH` [m], the distance's rate along the command:
+``d' = n . (J_p2 - J_p1) qdot_arm``, with ``n`` the unit vector from the first part's
+nearest point ``p1`` to the second's ``p2`` and ``J_p`` the linear Jacobian of a point
+fixed to its link.  The base's motion moves both parts alike (the deck is on the base),
+so only the arm's joints change a distance.
+
+A command that closes a pair is scaled, as a whole, so that the closing speed stays on
+the braking curve ``min(sqrt(2 k a room), room / tau)`` (``room = d - margin``; ``k``:
+metres per radian of the command's fastest joint; ``a``: 80 % of the joints'
+acceleration limit; ``tau`` 50 ms): the same curve as the singularity braking, so the
+pair comes to rest at the margin within the acceleration limits.  Moving apart, and
+moving along (``d' >= 0``), are free: a robot inside the margin can always be pulled
+out.  A pair nearer than ``margin - collision_tolerance`` is the ``self_collision``
+fault (and enabling is refused while it lasts): the braking cannot get there unless the
+robot is moved otherwise (from the pendant, or it started there).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import NDArray
+
+from mmctl.config import Config
+from mmctl.model.geometry import BodyModel
+from mmctl.model.robot import RobotModel
+
+Vec = NDArray[np.float64]
+
+#: pairs nearer than the margin plus this [m] get their rate computed each cycle
+WATCH = 0.15
+#: the longest lever of a joint over a point of the arm [m] (the UR10e's reach, 1.3 m,
+#: plus the handle), for the watch distance at speed
+LEVER = 1.5
+#: the shortest look-ahead along the command [rad of its fastest joint]
+AHEAD = 0.05
+#: a command turned further than this (cos of the angle) from the measure's is measured
+#: again
+TURN_COS = 0.95
+#: the distances are measured again after the arm turned this much in all [rad] ...
+RECHECK_ANGLE = 0.01
+#: ... or after this many cycles
+RECHECK_CYCLES = 10
+#: the braking curve's exponential end [s] (as the singularity braking's)
+TAU = 0.05
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+_Z6 = np.zeros(6)
+_Z6.setflags(write=False)
+
+
+class Near(NamedTuple):
+    """A pair nearer than the watch distance: its names, distance [m] and the
+    distance's gradient in the arm's joints (6,) [m/rad]."""
+
+    pair: tuple[str, str]
+    distance: float
+    grad: tuple[float, ...]
+    ahead: float = 0.0
+    """How much the distance falls per radian of the fastest joint along the command
+    of the measure, over its look-ahead (:data:`AHEAD`) [m/rad] (0: not closing)."""
+
+
+class BodyState(NamedTuple):
+    """The last measure: the arm's joints then, the controller's cycle, the watched
+    pairs, and the nearest pair of all with its distance [m]."""
+
+    q: tuple[float, ...]
+    cycle: int
+    near: tuple[Near, ...]
+    pair: tuple[str, str] | None
+    distance: float
+    watch: float
+    direction: tuple[float, ...] | None = None
+    """The command's direction at the measure (unit length; None: at rest)."""
+
+
+class BodyBrake(NamedTuple):
+    """One cycle's verdict: ``scale`` of the command (1: free), the nearest pair and its
+    distance [m], and ``fault`` when a pair is deeper than the margin's tolerance."""
+
+    scale: float
+    pair: tuple[str, str] | None
+    distance: float
+    fault: bool
+
+
+class BodyCheck:
+    """The robot's self-collision check and braking (see the module docstring)."""
+
+    def __init__(self, cfg: Config, model: RobotModel) -> None:
+        self.body = BodyModel(cfg.robot, model.arm, model.mount)
+        self.margin = cfg.safety.collision_margin
+        self.floor = cfg.safety.collision_margin - cfg.safety.collision_tolerance
+        self.watch = self.margin + WATCH
+        self.brake_accel = 0.8 * min(min(cfg.limits.joint_acceleration),
+                                     cfg.arm.speedj_acceleration)
+        geom = self.body.geom
+        self._joints = tuple((geom.geometryObjects[p.first].parentJoint,
+                              geom.geometryObjects[p.second].parentJoint)
+                             for p in geom.collisionPairs)
+
+    def near(self, q_a: Vec, watch: float | None = None, qdot_arm: Vec | None = None
+             ) -> tuple[list[Near], tuple[str, str] | None, float]:
+        """The pairs nearer than ``watch`` [m] (default: the margin plus :data:`WATCH`)
+        at ``q_a`` (6,), or at the look-ahead along ``qdot_arm``, with their gradients
+        and how much they close along it (:attr:`Near.ahead`), and the nearest pair of
+        all at ``q_a`` with its distance [m].
+
+        The look-ahead sees what the gradient cannot: a distance is the smaller of its
+        parts' (a capsule's end and its side), and while one part is nearest the other
+        may close fast (an upper arm turning about the shoulder over the deck).  It
+        goes as far as the fastest joint turns while braking (and 1.5 times that), at
+        least :data:`AHEAD` [rad]."""
+        watch = self.watch if watch is None else watch
+        body = self.body
+        model, data = body.model, body.data
+        # a fresh GeometryData each time: coal's solvers keep their last answer as the next
+        # one's start, which moves a GJK distance in its 7th digit (the update is pure)
+        gdata = pin.GeometryData(body.geom)
+        ahead: list[float] | None = None
+        theta = 0.0
+        if qdot_arm is not None:
+            speed = float(np.max(np.abs(qdot_arm)))
+            if speed > 0.0:
+                theta = max(AHEAD, 1.5 * speed * speed / (2.0 * self.brake_accel))
+                pin.computeDistances(model, data, body.geom, gdata,
+                                     q_a + qdot_arm * (theta / speed))
+                ahead = [r.min_distance for r in gdata.distanceResults]
+        k = pin.computeDistances(model, data, body.geom, gdata, q_a)
+        results = gdata.distanceResults
+        dists = [r.min_distance for r in results]
+        out: list[Near] = []
+        jacobians: dict[int, Vec] = {}
+        for i, d in enumerate(dists):
+            closing = 0.0 if ahead is None else max(0.0, (d - ahead[i]) / theta)
+            if d >= watch and (ahead is None or ahead[i] >= watch):
+                continue
+            if not jacobians:
+                pin.computeJointJacobians(model, data, q_a)
+            res = results[i]
+            n = res.normal.tolist()
+            j1, j2 = self._joints[i]
+            g = (self._point_grad(j2, res.getNearestPoint2(), n, jacobians)
+                 - self._point_grad(j1, res.getNearestPoint1(), n, jacobians))
+            out.append(Near(body.pairs[i], float(d), tuple(g.tolist()), closing))
+        return out, body.pairs[k], float(dists[k])
+
+    def _point_grad(self, joint: int, p: Vec, n: list[float], cache: dict[int, Vec]) -> Vec:
+        """(6,) ``n . J_p``: the rate along ``n`` of the point ``p`` (base_link) fixed to
+        ``joint`` per arm joint rate.  With ``v_p = v_o + w x r`` (``r = p - o``),
+        ``n . v_p = n . v_o + (r x n) . w``: two products, no (3, 6) matrix."""
+        if joint == 0:
+            return _Z6
+        J = cache.get(joint)
+        if J is None:
+            J = pin.getJointJacobian(self.body.model, self.body.data, joint, _LWA)
+            cache[joint] = J
+        ox, oy, oz = self.body.data.oMi[joint].translation.tolist()
+        rx, ry, rz = p[0] - ox, p[1] - oy, p[2] - oz
+        nx, ny, nz = n
+        rn = np.array((ry * nz - rz * ny, rz * nx - rx * nz, rx * ny - ry * nx))
+        grad: Vec = np.array(n).dot(J[:3]) + rn.dot(J[3:])
+        return grad
+
+    def brake(self, st: BodyState | None, q_a: Vec, qdot_arm: Vec, cycle: int
+              ) -> tuple[BodyState, BodyBrake]:
+        """The command's scale at ``q_a`` (6,) for the arm's joint rates ``qdot_arm``,
+        and the check's new state (``cycle``: the controller's cycle count).
+
+        The distances are measured (:meth:`near`) when the arm has turned by more than
+        :data:`RECHECK_ANGLE` in all since the last measure, or :data:`RECHECK_CYCLES`
+        cycles later; in between each watched pair's distance is its measure plus its
+        gradient times the joints' change (first order: off by less than 0.1 mm over
+        0.01 rad), and a pair outside the watch distance cannot close its 0.15 m."""
+        ql = q_a.tolist()
+        qd = qdot_arm.tolist()
+        speed = max(map(abs, qd))
+        # watch every pair that could close its room at this speed before the braking
+        # stops it: a joint's stopping angle times the longest lever
+        reach = LEVER * speed * speed / (2.0 * self.brake_accel)
+        watch = self.margin + WATCH + reach
+        norm = math.sqrt(sum(x * x for x in qd))
+        direction = None if norm == 0.0 else tuple(x / norm for x in qd)
+        if (st is None or cycle - st.cycle >= RECHECK_CYCLES or cycle < st.cycle
+                or watch > st.watch or _turned(st.direction, direction)
+                or sum(abs(a - b) for a, b in zip(ql, st.q)) > RECHECK_ANGLE):
+            watch += 0.5 * reach  # room to speed up before the next measure
+            near, pair, dist = self.near(q_a, watch, qdot_arm if norm > 0.0 else None)
+            st = BodyState(tuple(ql), cycle, tuple(near), pair, dist, watch, direction)
+            dq = None
+        else:
+            dq = [a - b for a, b in zip(ql, st.q)]
+        pair, dist = st.pair, st.distance
+        scale = 1.0
+        binding: tuple[tuple[str, str] | None, float] = (pair, dist)
+        for n in st.near:
+            g = n.grad
+            d = n.distance if dq is None else n.distance + sum(x * y for x, y in zip(g, dq))
+            if d < dist:
+                pair, dist = n.pair, d
+            rate = max(-sum(x * y for x, y in zip(g, qd)),  # > 0: closing [m/s]
+                       n.ahead * speed)
+            if rate <= 0.0:
+                continue
+            room = d - self.margin
+            if room <= 0.0:
+                s = 0.0
+            else:
+                k = rate / speed
+                allowed = min(math.sqrt(2.0 * k * self.brake_accel * room), room / TAU)
+                s = min(1.0, allowed / rate)
+            if s < scale:
+                scale, binding = s, (n.pair, d)
+        if dist < self.floor:
+            return st, BodyBrake(0.0, pair, dist, True)
+        if scale < 1.0:
+            pair, dist = binding
+        return st, BodyBrake(scale, pair, dist, False)
+
+    def inside(self, q_a: Vec) -> tuple[tuple[str, str], float] | None:
+        """The nearest pair and its distance when it is deeper than the tolerance allows
+        (enabling is refused there), else None."""
+        body = self.body
+        gdata = pin.GeometryData(body.geom)  # (as in near)
+        pin.computeDistances(body.model, body.data, body.geom, gdata, q_a)
+        dists = [r.min_distance for r in gdata.distanceResults]
+        k = min(range(len(dists)), key=dists.__getitem__)
+        return (body.pairs[k], float(dists[k])) if dists[k] < self.floor else None
+
+
+def _turned(before: tuple[float, ...] | None, now: tuple[float, ...] | None) -> bool:
+    """True when the command's direction is no longer the measure's (its look-ahead
+    would look the wrong way): started, stopped, or turned by more than ~18 deg."""
+    if before is None or now is None:
+        return before is not now
+    return sum(a * b for a, b in zip(before, now)) < TURN_COS
