@@ -70,7 +70,15 @@ def test_render_empty_snapshot_shows_dashes_and_no_sim_or_hint_line() -> None:
     assert "cycles -" in lines[0] and "up -" in lines[0]
     assert not any(line.startswith(("sim", "hint")) for line in lines)
     assert "fx      -" in lines[1] and "end-effector - m/s" in lines[2]
-    assert "misses - % of the last - s (-), - since start (- %)" in lines[5]
+    assert "binding none" in lines[4] and "nearest" not in lines[4]
+    assert "misses - % of the last - s (-), - since start (- %)" in lines[6]
+
+
+def test_render_names_the_binding_limit_and_the_nearest_parts() -> None:
+    lines = render({"limit": "self_collision",
+                    "nearest_parts": {"pair": "deck-handle", "distance_m": 0.0501}})
+    assert lines[4].split() == ["limit", "binding", "self_collision", "nearest", "parts",
+                                "deck-handle", "0.050", "m"]
 
 
 def test_render_none_nan_and_odd_types_show_dashes_and_never_raise() -> None:
@@ -293,7 +301,7 @@ def test_log_lines_scroll_above_the_block_in_order_and_whole() -> None:
     # the final block, printed once, below everything logged while the view ran
     assert block[0].startswith("mmctl ─ ARMED") and block[-1] == "hint    Ctrl-C stops"
     assert [line.split()[0] for line in block[1:-1]] == [
-        "force", "speed", "energy", "loop", "misses"]
+        "force", "speed", "energy", "limit", "loop", "misses"]
     assert sum(line.startswith("mmctl ─") for line in lines) == 1
     assert after == ["after stop isatty=True", "straight to the terminal"]
     assert all(len(line) < 100 for line in block)

@@ -29,3 +29,19 @@ def test_status_is_a_snapshot_renewed_on_a_change(make_rig: Callable[..., Rig], 
     rig.step(2)
     fresh = rig.daemon.handle({"cmd": "status"}, None)
     assert fresh["cycles"] == rig.daemon.cycles
+
+
+def test_status_names_the_robots_nearest_parts_and_the_fault_names_the_pair(
+        make_rig: Callable[..., Rig]) -> None:  # noqa: F811
+    from test_fault_matrix import Q_SELF_COLLISION
+
+    rig = make_rig()
+    rig.arm_and_push()
+    robot = rig.daemon.status()["robot"]
+    assert robot["nearest_parts"]["pair"] == "forearm-wrist_3"  # at q_des, 9.1 cm apart
+    assert robot["nearest_parts"]["distance_m"] == pytest.approx(0.091, abs=0.002)
+    rig.arm.q = Q_SELF_COLLISION.copy()
+    rig.step(1)
+    st = rig.daemon.status()
+    assert st["fault"] == "self_collision"
+    assert st["fault_details"]["pair"] == "deck-handle" and st["fault_details"]["distance_m"] < 0

@@ -40,6 +40,9 @@ def run(args: argparse.Namespace) -> int:
     caps = st.get("caps")
     if caps:
         limit = (robot or {}).get("limit") or "none"
+        near = (robot or {}).get("nearest_parts")
+        if near:
+            limit += f" (nearest parts: {near['pair']} {near['distance_m']} m)"
         print(f"limits: profile {st.get('profile')}, E_K <= {caps['energy_J']} J, base <= "
               f"{caps['base_speed_m_s']} m/s, end-effector <= {caps['ee_speed_m_s']} m/s; "
               f"binding now: {limit}")

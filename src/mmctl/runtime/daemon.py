@@ -463,7 +463,8 @@ class Daemon:
                                         "ee_speed_m_s": round(float(
                                             np.linalg.norm(last.v_d[:3])), 4)},
                             "speed_scaling": round(float(self.speed_scaling), 4),
-                            "limit": last.out.limit if last.out is not None else ""}
+                            "limit": last.out.limit if last.out is not None else "",
+                            "nearest_parts": _nearest(last)}
         if self.calibration is not None:
             out["calibration"] = self.calibration.progress()
         if self.sim is not None:
@@ -538,7 +539,9 @@ class Daemon:
             out.update(f_h=[float(x) for x in last.f_h], ee_speed=m["ee_speed_m_s"],
                        base_speed=m["base_speed_m_s"], base_yaw_rate=m["base_yaw_rate"],
                        energy_arm=m["energy_arm_J"], energy_base=m["energy_base_J"],
-                       ee_speed_desired=float(np.linalg.norm(last.v_d[:3])))
+                       ee_speed_desired=float(np.linalg.norm(last.v_d[:3])),
+                       limit=last.out.limit if last.out is not None else "",
+                       nearest_parts=_nearest(last))
         if self.sim is not None and self.sim.closed:
             out["sim"] = {"person": "stopped"}
         elif self.sim is not None:
@@ -553,6 +556,15 @@ class Daemon:
         else:
             out["hint"] = "mmctl status · mmctl disable · Ctrl-C stops"
         return out
+
+
+def _nearest(last: CycleResult) -> dict[str, object] | None:
+    """The robot's two nearest parts and their distance (the self-collision check's),
+    or None when the controller did not run the check."""
+    body = last.out.body if last.out is not None else None
+    if body is None:
+        return None
+    return {"pair": "-".join(body[0]), "distance_m": round(body[1], 4)}
 
 
 def _round(v: ArrayLike, nd: int = 5) -> list[float]:

@@ -62,7 +62,7 @@ def render(snap: Mapping[str, object], width: int = 100) -> list[str]:
     loop = snap.get("loop")
     loop = loop if isinstance(loop, Mapping) else {}
     lines = [_header(snap), _force(snap.get("f_h")), _speed(snap), _energy(snap),
-             _loop(loop), f"{'':<{_LABEL}}{misses_text(loop)}"]
+             _limit(snap), _loop(loop), f"{'':<{_LABEL}}{misses_text(loop)}"]
     sim = snap.get("sim")
     if isinstance(sim, Mapping):
         lines.append(f"{'sim':<{_LABEL}}person {_text(sim.get('person'))}   "
@@ -102,6 +102,17 @@ def _speed(snap: Mapping[str, object]) -> str:
             f"base {_num(snap.get('base_speed'), '.3f')} m/s  "
             f"{_num(snap.get('base_yaw_rate'), '+.2f')} rad/s   (measured; desired "
             f"{_num(snap.get('ee_speed_desired'), '.3f')} m/s)")
+
+
+def _limit(snap: Mapping[str, object]) -> str:
+    """The limit that binds the command now, and the robot's two nearest parts."""
+    limit = snap.get("limit")
+    near = snap.get("nearest_parts")
+    parts = f"binding {limit if isinstance(limit, str) and limit else 'none'}"
+    if isinstance(near, Mapping):
+        parts += (f"   nearest parts {_text(near.get('pair'))} "
+                  f"{_num(near.get('distance_m'), '.3f')} m")
+    return f"{'limit':<{_LABEL}}{parts}"
 
 
 def _energy(snap: Mapping[str, object]) -> str:
