@@ -162,6 +162,30 @@ def test_the_poses_keep_the_handle_in_the_end_effector_box() -> None:
     assert reach > 0.15  # without the box the handle sweeps beyond it
 
 
+def test_the_poses_keep_the_robots_parts_apart_by_the_collision_margin() -> None:
+    """The routine's own motion is not braked by the self-collision check: its plan
+    keeps the margin on every leg (without it, a wrist tilt brings the handle within
+    3 cm of the forearm: the self_collision fault a loaded run met)."""
+    from mmctl.model.geometry import BodyModel
+
+    cfg = default_config()
+    model = RobotModel(cfg.robot)
+    body = BodyModel(cfg.robot, model.arm, model.mount)
+    q0 = np.asarray(cfg.robot.q_des)
+    margin = cfg.safety.collision_margin
+
+    def lowest(plan: Any) -> float:
+        return min(body.clearance(mv.at(t)[0]) for mv in plan.moves()
+                   for t in np.linspace(0.0, mv.duration, 30))
+
+    free = plan_poses(model, q0, 8, cfg.sensor.calibration, cfg.limits,
+                      cfg.safety.max_condition, 0.5)
+    assert lowest(free) < margin  # the wrist's range reaches into the margin
+    plan = plan_poses(model, q0, 8, cfg.sensor.calibration, cfg.limits,
+                      cfg.safety.max_condition, 0.5, None, body.clearance, margin)
+    assert len(plan.poses) >= 6 and lowest(plan) >= margin - 1e-3
+
+
 def test_a_move_is_a_synchronised_trapezoid_within_speed_and_acceleration() -> None:
     a, b = np.zeros(6), np.array([0, 0, 0, 0.4, -1.2, 2.0])
     mv = Move(a, b, 0.3, 0.5)

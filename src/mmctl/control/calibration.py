@@ -43,7 +43,7 @@ aborts), and ends back at the start pose.  No I/O, no clock: the caller passes `
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -334,7 +334,9 @@ class Plan(NamedTuple):
 
 def plan_poses(model: RobotModel, q0: Vec, n: int, cal: ToolCalibrationConfig,
                limits: LimitsConfig, max_condition: float, ee_speed: float,
-               ee_box: Sequence[Sequence[float]] | None = None) -> Plan:
+               ee_box: Sequence[Sequence[float]] | None = None,
+               clearance: Callable[[Vec], float] | None = None,
+               min_clearance: float = 0.0) -> Plan:
     """``n`` poses of the wrist from the arm pose ``q0`` (6,) (see the module docstring).
 
     Every pose is inside the joint limits by ``limits.position_margin``; no leg passes
@@ -342,8 +344,12 @@ def plan_poses(model: RobotModel, q0: Vec, n: int, cal: ToolCalibrationConfig,
     out of ``ee_box`` (``walls.ee_box``: [[x, y, z] min, max] in the base frame; not
     checked when the handle is outside it already); each leg's speed is at most
     ``cal.speed`` and ``limits.joint_velocity`` and low enough that the handle moves at
-    most ``ee_speed`` [m/s].  Fewer than ``n`` poses come back when the range holds no
-    more distinct orientations (the fit then says what is missing)."""
+    most ``ee_speed`` [m/s]; with ``clearance`` (the robot's nearest parts' distance at
+    an arm pose [m], :meth:`mmctl.model.geometry.BodyModel.closest`) no leg brings two
+    of the robot's parts nearer than ``min_clearance`` (the routine's own motion is not
+    braked by the self-collision check, so its plan keeps the margin).  Fewer than
+    ``n`` poses come back when the range holds no more distinct orientations (the fit
+    then says what is missing)."""
     q0 = np.asarray(q0, dtype=float)[:6].copy()
     box = None if ee_box is None else np.asarray(ee_box, dtype=float)
     if box is not None and not _in_box(model, q0, box):
@@ -360,7 +366,8 @@ def plan_poses(model: RobotModel, q0: Vec, n: int, cal: ToolCalibrationConfig,
         for d in deltas:
             q = q0.copy()
             q[3:] += d
-            if np.all(q >= lo) and np.all(q <= hi) and (box is None or _in_box(model, q, box)):
+            if np.all(q >= lo) and np.all(q <= hi) and (box is None or _in_box(model, q, box)) \
+                    and (clearance is None or clearance(q) >= min_clearance):
                 out.append(q)
         return out
 
@@ -396,7 +403,7 @@ def plan_poses(model: RobotModel, q0: Vec, n: int, cal: ToolCalibrationConfig,
                 chosen.append(pool[i])
                 dirs.append(pdirs[i])
         poses = _tour(chosen)
-        bad = _bad_legs(model, poses, cond_max, box)
+        bad = _bad_legs(model, poses, cond_max, box, clearance, min_clearance)
         if not bad:
             break
         rejected.update(poses[k].tobytes() for k in bad)
@@ -430,16 +437,19 @@ def _in_box(model: RobotModel, q_a: Vec, box: Vec) -> bool:
 
 
 def _bad_legs(model: RobotModel, poses: list[Vec], cond_max: float,
-              box: Vec | None) -> list[int]:
+              box: Vec | None, clearance: Callable[[Vec], float] | None = None,
+              min_clearance: float = 0.0) -> list[int]:
     """Poses to drop: for each leg (the last one back to the start) that passes a pose
-    whose condition number exceeds ``cond_max`` or whose handle is outside ``box``, the
-    index of its end that is not the start pose."""
+    whose condition number exceeds ``cond_max``, whose handle is outside ``box`` or
+    whose parts come nearer than ``min_clearance``, the index of its end that is not
+    the start pose."""
     bad = []
     n = len(poses)
     for k in range(n):
         a, b = poses[k], poses[(k + 1) % n]
         on_leg = [a + s * (b - a) for s in np.linspace(0, 1, 9)]
         if any(_condition(model, q) > cond_max or (box is not None and not _in_box(model, q, box))
+               or (clearance is not None and clearance(q) < min_clearance)
                for q in on_leg):
             bad.append(k + 1 if k + 1 < n else k)
     return [k for k in bad if k != 0]

@@ -214,6 +214,12 @@ class BodyModel:
                                 _vec(*res.getNearestPoint1()), _vec(*res.getNearestPoint2())))
         return out
 
+    def clearance(self, q_a: np.ndarray) -> float:
+        """The distance of the nearest pair at ``q_a`` (6,) [m]."""
+        pin.computeDistances(self.model, self.data, self.geom, self.geom_data,
+                             np.asarray(q_a[:6], dtype=float))
+        return float(min(r.min_distance for r in self.geom_data.distanceResults))
+
     def closest(self, q_a: np.ndarray) -> Distance:
         """The pair nearest to touching at ``q_a`` (6,) [rad]."""
         return min(self.distances(q_a), key=lambda d: d.distance)

@@ -114,9 +114,16 @@ class Calibrations:
                 from mmctl.model.robot import RobotModel
 
                 self._planner = RobotModel(self.cfg.robot)
+            clearance = None
+            if self.cfg.safety.collision_check:
+                from mmctl.model.geometry import BodyModel
+
+                planner = self._planner
+                clearance = BodyModel(self.cfg.robot, planner.arm, planner.mount).clearance
             plan = plan_poses(self._planner, q[:6], n, cal, self.cfg.limits,
                               self.cfg.safety.max_condition, float(caps["ee_speed_m_s"] or 0.25),
-                              self.cfg.walls.ee_box)
+                              self.cfg.walls.ee_box, clearance,
+                              self.cfg.safety.collision_margin)
         started: dict[str, object] = self.rt.on_loop(lambda: self._begin(plan, q))
         return started
 
