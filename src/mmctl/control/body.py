@@ -41,7 +41,7 @@ WATCH = 0.15
 #: plus the handle), for the watch distance at speed
 LEVER = 1.5
 #: the shortest look-ahead along the command [rad of its fastest joint]
-AHEAD = 0.05
+AHEAD = 0.01
 #: a command turned further than this (cos of the angle) from the measure's is measured
 #: again
 TURN_COS = 0.95
@@ -90,6 +90,9 @@ class BodyBrake(NamedTuple):
     pair: tuple[str, str] | None
     distance: float
     fault: bool
+    qdot_arm: Vec | None = None
+    """The arm's rates with each pair's closing part taken out (None: unchanged); the
+    whole command is then scaled by ``scale``."""
 
 
 class BodyCheck:
@@ -110,38 +113,28 @@ class BodyCheck:
     def near(self, q_a: Vec, watch: float | None = None, qdot_arm: Vec | None = None
              ) -> tuple[list[Near], tuple[str, str] | None, float]:
         """The pairs nearer than ``watch`` [m] (default: the margin plus :data:`WATCH`)
-        at ``q_a`` (6,), or at the look-ahead along ``qdot_arm``, with their gradients
-        and how much they close along it (:attr:`Near.ahead`), and the nearest pair of
-        all at ``q_a`` with its distance [m].
+        at ``q_a`` (6,) with their gradients and, along ``qdot_arm``, how much they close
+        over the look-ahead (:attr:`Near.ahead`); and the nearest pair of all at ``q_a``
+        with its distance [m]."""
+        near, pair, dist = self._measure(q_a, self.watch if watch is None else watch)
+        if qdot_arm is not None:
+            near = self._look_ahead(q_a, qdot_arm.tolist(), near)
+        return near, pair, dist
 
-        The look-ahead sees what the gradient cannot: a distance is the smaller of its
-        parts' (a capsule's end and its side), and while one part is nearest the other
-        may close fast (an upper arm turning about the shoulder over the deck).  It
-        goes as far as the fastest joint turns while braking (and 1.5 times that), at
-        least :data:`AHEAD` [rad]."""
-        watch = self.watch if watch is None else watch
+    def _measure(self, q_a: Vec, watch: float
+                 ) -> tuple[list[Near], tuple[str, str] | None, float]:
         body = self.body
         model, data = body.model, body.data
         # a fresh GeometryData each time: coal's solvers keep their last answer as the next
         # one's start, which moves a GJK distance in its 7th digit (the update is pure)
         gdata = pin.GeometryData(body.geom)
-        ahead: list[float] | None = None
-        theta = 0.0
-        if qdot_arm is not None:
-            speed = float(np.max(np.abs(qdot_arm)))
-            if speed > 0.0:
-                theta = max(AHEAD, 1.5 * speed * speed / (2.0 * self.brake_accel))
-                pin.computeDistances(model, data, body.geom, gdata,
-                                     q_a + qdot_arm * (theta / speed))
-                ahead = [r.min_distance for r in gdata.distanceResults]
         k = pin.computeDistances(model, data, body.geom, gdata, q_a)
         results = gdata.distanceResults
         dists = [r.min_distance for r in results]
         out: list[Near] = []
         jacobians: dict[int, Vec] = {}
         for i, d in enumerate(dists):
-            closing = 0.0 if ahead is None else max(0.0, (d - ahead[i]) / theta)
-            if d >= watch and (ahead is None or ahead[i] >= watch):
+            if d >= watch:
                 continue
             if not jacobians:
                 pin.computeJointJacobians(model, data, q_a)
@@ -150,8 +143,27 @@ class BodyCheck:
             j1, j2 = self._joints[i]
             g = (self._point_grad(j2, res.getNearestPoint2(), n, jacobians)
                  - self._point_grad(j1, res.getNearestPoint1(), n, jacobians))
-            out.append(Near(body.pairs[i], float(d), tuple(g.tolist()), closing))
+            out.append(Near(body.pairs[i], float(d), tuple(g.tolist())))
         return out, body.pairs[k], float(dists[k])
+
+    def _look_ahead(self, q_a: Vec, qd: list[float], near: list[Near]) -> list[Near]:
+        """``near`` with :attr:`Near.ahead` along ``qd``.  The look-ahead sees what the
+        gradient cannot: a distance is the smaller of its parts' (a capsule's end and
+        its side), and while one part is nearest the other may close fast (an upper arm
+        turning about the shoulder over the deck).  It goes as far as the fastest joint
+        turns while braking (and 1.5 times that), at least :data:`AHEAD` [rad]."""
+        speed = max(map(abs, qd))
+        if speed <= 0.0 or not near:
+            return near
+        theta = max(AHEAD, 1.5 * speed * speed / (2.0 * self.brake_accel))
+        body = self.body
+        gdata = pin.GeometryData(body.geom)  # (fresh: as in _measure)
+        pin.computeDistances(body.model, body.data, body.geom, gdata,
+                             q_a + np.array(qd) * (theta / speed))
+        ahead = [r.min_distance for r in gdata.distanceResults]
+        index = {p: i for i, p in enumerate(body.pairs)}
+        return [n._replace(ahead=max(0.0, (n.distance - ahead[index[n.pair]]) / theta))
+                for n in near]
 
     def _point_grad(self, joint: int, p: Vec, n: list[float], cache: dict[int, Vec]) -> Vec:
         """(6,) ``n . J_p``: the rate along ``n`` of the point ``p`` (base_link) fixed to
@@ -187,43 +199,71 @@ class BodyCheck:
         # stops it: a joint's stopping angle times the longest lever
         reach = LEVER * speed * speed / (2.0 * self.brake_accel)
         watch = self.margin + WATCH + reach
-        norm = math.sqrt(sum(x * x for x in qd))
-        direction = None if norm == 0.0 else tuple(x / norm for x in qd)
-        if (st is None or cycle - st.cycle >= RECHECK_CYCLES or cycle < st.cycle
-                or watch > st.watch or _turned(st.direction, direction)
-                or sum(abs(a - b) for a, b in zip(ql, st.q)) > RECHECK_ANGLE):
+        fresh = (st is None or cycle - st.cycle >= RECHECK_CYCLES or cycle < st.cycle
+                 or watch > st.watch
+                 or sum(abs(a - b) for a, b in zip(ql, st.q)) > RECHECK_ANGLE)
+        dq = None if st is None else [a - b for a, b in zip(ql, st.q)]
+        if not fresh:
+            assert st is not None
+            verdict = self._verdict(st, qd, dq, speed)
+            fresh = _turned(st.direction, _unit(verdict[0]))
+        if fresh:
             watch += 0.5 * reach  # room to speed up before the next measure
-            near, pair, dist = self.near(q_a, watch, qdot_arm if norm > 0.0 else None)
-            st = BodyState(tuple(ql), cycle, tuple(near), pair, dist, watch, direction)
+            near, pair, dist = self._measure(q_a, watch)
+            st = BodyState(tuple(ql), cycle, tuple(near), pair, dist, watch)
+            # the look-ahead along the command as the gradients leave it
+            fixed = self._verdict(st, qd, None, speed)[0]
+            st = st._replace(near=tuple(self._look_ahead(q_a, fixed, near)),
+                             direction=_unit(fixed))
             dq = None
-        else:
-            dq = [a - b for a, b in zip(ql, st.q)]
+            verdict = self._verdict(st, qd, None, speed)
+        assert st is not None
+        fixed, scale, pair, dist = verdict
+        if dist < self.floor:
+            return st, BodyBrake(0.0, pair, dist, True)
+        arm = None if fixed == qd else np.array(fixed)
+        return st, BodyBrake(scale, pair, dist, False, arm)
+
+    def _verdict(self, st: BodyState, qd: list[float], dq: list[float] | None, speed: float
+                 ) -> tuple[list[float], float, tuple[str, str] | None, float]:
+        """The arm's rates with each watched pair's closing part taken out, the scale
+        for what only the look-ahead sees, and the pair to report with its distance
+        (the binding one, else the nearest)."""
         pair, dist = st.pair, st.distance
         scale = 1.0
-        binding: tuple[tuple[str, str] | None, float] = (pair, dist)
-        for n in st.near:
+        binding: tuple[tuple[str, str] | None, float] | None = None
+        fixed = qd
+        # nearest first: the part of the command that closes a pair faster than its
+        # braking curve allows is taken out along the pair's gradient (as a wall takes
+        # the part into it out: the rest of the motion, and the base, stay)
+        for n in sorted(st.near, key=lambda n: n.distance):
             g = n.grad
             d = n.distance if dq is None else n.distance + sum(x * y for x, y in zip(g, dq))
             if d < dist:
                 pair, dist = n.pair, d
-            rate = max(-sum(x * y for x, y in zip(g, qd)),  # > 0: closing [m/s]
-                       n.ahead * speed)
+            closing = -sum(x * y for x, y in zip(g, fixed))  # > 0: closing [m/s]
+            ahead = n.ahead * speed  # what the look-ahead sees closing [m/s]
+            rate = max(closing, ahead)
             if rate <= 0.0:
                 continue
             room = d - self.margin
             if room <= 0.0:
-                s = 0.0
+                allowed = 0.0
             else:
                 k = rate / speed
                 allowed = min(math.sqrt(2.0 * k * self.brake_accel * room), room / TAU)
-                s = min(1.0, allowed / rate)
-            if s < scale:
-                scale, binding = s, (n.pair, d)
-        if dist < self.floor:
-            return st, BodyBrake(0.0, pair, dist, True)
-        if scale < 1.0:
+            gg = sum(x * x for x in g)
+            if closing > allowed and gg > 1e-12:
+                c = (closing - allowed) / gg
+                fixed = [x + c * y for x, y in zip(fixed, g)]
+                binding = binding or (n.pair, d)
+            if ahead > allowed:  # not in the gradient: slow the whole command
+                s = allowed / ahead
+                if s < scale:
+                    scale, binding = s, (n.pair, d)
+        if binding is not None:
             pair, dist = binding
-        return st, BodyBrake(scale, pair, dist, False)
+        return fixed, scale, pair, dist
 
     def inside(self, q_a: Vec) -> tuple[tuple[str, str], float] | None:
         """The nearest pair and its distance when it is deeper than the tolerance allows
@@ -242,3 +282,8 @@ def _turned(before: tuple[float, ...] | None, now: tuple[float, ...] | None) -> 
     if before is None or now is None:
         return before is not now
     return sum(a * b for a, b in zip(before, now)) < TURN_COS
+
+
+def _unit(v: list[float]) -> tuple[float, ...] | None:
+    norm = math.sqrt(sum(x * x for x in v))
+    return None if norm == 0.0 else tuple(x / norm for x in v)

@@ -382,6 +382,9 @@ class Controller:
                 body = (brake.pair, brake.distance)
             if brake.fault:
                 return self._fault(state, FaultCause.SELF_COLLISION, cond, weights, body)
+            if brake.qdot_arm is not None:
+                qdot = np.concatenate((brake.qdot_arm, qdot[6:]))
+                lim = lim._replace(limit="self_collision")
             if brake.scale < 1.0:
                 qdot = brake.scale * qdot
                 lim = lim._replace(final_scale=lim.final_scale * brake.scale,
