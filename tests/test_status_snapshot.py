@@ -38,8 +38,8 @@ def test_status_names_the_robots_nearest_parts_and_the_fault_names_the_pair(
     rig = make_rig()
     rig.arm_and_push()
     robot = rig.daemon.status()["robot"]
-    assert robot["nearest_parts"]["pair"] == "forearm-wrist_3"  # at q_des, 9.1 cm apart
-    assert robot["nearest_parts"]["distance_m"] == pytest.approx(0.091, abs=0.002)
+    assert robot["nearest_parts"]["pair"] == "deck-upper_arm"  # at q_des, 10.6 cm apart
+    assert robot["nearest_parts"]["distance_m"] == pytest.approx(0.1059, abs=0.002)
     rig.arm.q = Q_SELF_COLLISION.copy()
     rig.step(1)
     st = rig.daemon.status()

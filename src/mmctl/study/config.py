@@ -101,10 +101,11 @@ class StudyConfig:
     def control_config(self, strategy: str) -> Config:
         """The control configuration of one execution: the file (or defaults) with
         ``idk.strategy`` set to ``strategy`` and ``loop.rate_hz`` to 1/dt.  The defaults
-        are the paper's robot: without the hand-guiding caps, the joint-limit hand-over
-        and the singularity braking it did not have (``limits.body_region: none``,
-        ``idk.avoid_joint_limits: false``, ``safety.brake_condition: 1``: braked only at
-        the fault's own level; a config file states its own).  The wall task sets
+        are the paper's robot: without the hand-guiding caps, the joint-limit hand-over,
+        the singularity braking and the self-collision check it did not have
+        (``limits.body_region: none``, ``idk.avoid_joint_limits: false``,
+        ``safety.brake_condition: 1``: braked only at the fault's own level,
+        ``safety.collision_check: false``; a config file states its own).  The wall task sets
         ``robot.q_des`` to :data:`WALL_Q_DES` (the peg horizontal), with a file too: the
         preferred pose belongs to the task (``robot.q_init``, if the file sets it, must
         then hold the peg horizontal as well)."""
@@ -114,7 +115,8 @@ class StudyConfig:
             cfg = default_config()
             cfg = replace(cfg, limits=replace(cfg.limits, body_region="none"),  # type: ignore[type-var]
                           idk=replace(cfg.idk, avoid_joint_limits=False),  # type: ignore[type-var]
-                          safety=replace(cfg.safety, brake_condition=1.0))  # type: ignore[type-var]
+                          safety=replace(cfg.safety, brake_condition=1.0,  # type: ignore[type-var]
+                                         collision_check=False))
         if self.task == "wall":
             cfg = replace(cfg, robot=replace(cfg.robot, q_des=WALL_Q_DES))  # type: ignore[type-var]
         return replace(cfg, idk=replace(cfg.idk, strategy=strategy),  # type: ignore[type-var]
