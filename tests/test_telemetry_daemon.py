@@ -8,6 +8,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from mmctl.config import config_from_dict
@@ -90,6 +91,13 @@ def test_daemon_records_trial_and_metrics_match(tmp_path: Path, loopback_host: s
     assert full + rec.dropped == pub.ring.accepted + pub.ring.dropped
     stride = round(cfg.loop.rate_hz / cfg.telemetry.plot_rate)
     assert counts[layout.FORCE.path] == int((rec.cycle % stride == 0).sum())
+    # the robot's nearest parts (the self-collision check's) at plot rate; NaN here: the
+    # robot stays disarmed, so the controller runs no check (tests/test_urdf.py and
+    # test_status_snapshot.py check the values)
+    near = [float(np.ravel(v)[0]) for v in
+            table.column(column_name(layout.NEAREST.path)).to_pylist() if v is not None]
+    assert counts[layout.NEAREST.path] == counts[layout.FORCE.path] == len(near)
+    assert all(np.isnan(d) or 0.0 < d < 0.5 for d in near)
     # loop timing: each sample row carries its previous cycle's (the very first has none):
     assert counts[layout.LOOP_TIMING.path] in (full - 1, full)
     assert daemon.loop.cycles >= full

@@ -167,7 +167,8 @@ class ControlCore:
         e = r.energy
         out = r.out
         limit = (tr.limit_code(out.limit), out.scale) if out is not None else _NO_LIMIT
+        near = out.body[1] if out is not None and out.body is not None else math.nan
         np.concatenate(((cycle, t, tr.mode_code(mode), tr.safety_code(safety), *prev), q,
                         r.f_h, r.v_d, v, r.qd_cmd, (e.total, e.arm, e.base), r.p, r.p_des,
-                        limit), out=row)
+                        limit, (near,)), out=row)
 

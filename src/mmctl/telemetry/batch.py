@@ -128,6 +128,7 @@ def plot_rate(rows: F64, stride: int, wheels: F64) -> Columns:
         layout.BASE_TWIST.path: qd[:, 6:].copy(),
         layout.WHEELS.path: wheel_speeds(picked, wheels),
         layout.LIMIT_SCALE.path: picked[:, ring.LIMIT_SCALE:ring.LIMIT_SCALE + 1].copy(),
+        layout.NEAREST.path: picked[:, ring.NEAREST:ring.NEAREST + 1].copy(),
     })
 
 

@@ -57,9 +57,12 @@ DROPPED = Series("plots/telemetry/dropped", "plot", ("dropped",), "samples")
 #: the scale the limits applied to the IDK's command (1: free); which limit bound it is
 #: an event (``limit=...``) when it changes
 LIMIT_SCALE = Series("plots/command/limit_scale", "plot", ("limit scale",), "")
+#: the robot's two nearest parts' distance (the self-collision check's; its margin is
+#: safety.collision_margin, and the binding pair is named by status and the live view)
+NEAREST = Series("plots/body/nearest_distance", "plot", ("nearest parts",), "m")
 
 FULL_RATE: tuple[Series, ...] = (ENERGY, FORCE_NORM, SPEED, EE_POSITION, EE_POSITION_DES)
-PLOT_RATE: tuple[Series, ...] = (FORCE, ARM_QD, BASE_TWIST, WHEELS, LIMIT_SCALE)
+PLOT_RATE: tuple[Series, ...] = (FORCE, ARM_QD, BASE_TWIST, WHEELS, LIMIT_SCALE, NEAREST)
 ALL_SERIES: tuple[Series, ...] = FULL_RATE + (LOOP_TIMING,) + PLOT_RATE + (DROPPED,)
 
 # -- 3-D scene (scene rate); world = odometry frame, base = mobile base frame ------------
@@ -126,6 +129,8 @@ def blueprint(history_s: float = 20.0) -> Any:
             plot("Wheel speed commands [rad/s]", WHEELS.path),
             plot("Limits: scale of the command (1: free; events name the limit)",
                  LIMIT_SCALE.path),
+            plot("Self-collision: the robot's two nearest parts' distance [m]",
+                 NEAREST.path),
             plot("End-effector position p vs p_des [m]", EE_POSITION.path,
                  EE_POSITION_DES.path),
         ),

@@ -9,6 +9,7 @@ the publisher reads them from the loop's :class:`~mmctl.runtime.timing.TimingRin
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -36,7 +37,9 @@ class TelemetrySample(NamedTuple):
     mode: the active IDK strategy / switch sub-mode (its name);
     safety: the safety state (its name);
     limit: the limit that bound the command (:data:`~mmctl.control.limits.LIMIT_NAMES`,
-    "" none); limit_scale: the scale the limits applied to the IDK's command (1: free).
+    "" none); limit_scale: the scale the limits applied to the IDK's command (1: free);
+    nearest: the distance of the robot's two nearest parts [m] (the self-collision
+    check's; NaN when it did not run).
     """
 
     cycle: int
@@ -56,6 +59,7 @@ class TelemetrySample(NamedTuple):
     safety: str
     limit: str = ""
     limit_scale: float = 1.0
+    nearest: float = math.nan
 
 
 def zero_sample(cycle: int = 0, t: float = 0.0) -> TelemetrySample:
