@@ -42,6 +42,9 @@ WATCH = 0.15
 LEVER = 1.5
 #: the shortest look-ahead along the command [rad of its fastest joint]
 AHEAD = 0.01
+#: [m] over the look-ahead, what the gradient mispredicts by less than this is its
+#: curvature, not a part it does not see
+UNSEEN = 0.001
 #: a command turned further than this (cos of the angle) from the measure's is measured
 #: again
 TURN_COS = 0.95
@@ -64,8 +67,9 @@ class Near(NamedTuple):
     distance: float
     grad: tuple[float, ...]
     ahead: float = 0.0
-    """How much the distance falls per radian of the fastest joint along the command
-    of the measure, over its look-ahead (:data:`AHEAD`) [m/rad] (0: not closing)."""
+    """How much more the distance falls along the command of the measure than its
+    gradient predicts, per radian of the fastest joint over the look-ahead [m/rad] (0:
+    the gradient sees it all)."""
 
 
 class BodyState(NamedTuple):
@@ -162,8 +166,15 @@ class BodyCheck:
                              q_a + np.array(qd) * (theta / speed))
         ahead = [r.min_distance for r in gdata.distanceResults]
         index = {p: i for i, p in enumerate(body.pairs)}
-        return [n._replace(ahead=max(0.0, (n.distance - ahead[index[n.pair]]) / theta))
-                for n in near]
+        step = [x * (theta / speed) for x in qd]
+        out = []
+        for n in near:
+            # what the gradient does not predict (a part that becomes the nearest); its
+            # curvature alone (a millimetre over the look-ahead) is not that
+            predicted = n.distance + sum(g * x for g, x in zip(n.grad, step))
+            unseen = predicted - ahead[index[n.pair]] - UNSEEN
+            out.append(n._replace(ahead=max(0.0, unseen / theta)))
+        return out
 
     def _point_grad(self, joint: int, p: Vec, n: list[float], cache: dict[int, Vec]) -> Vec:
         """(6,) ``n . J_p``: the rate along ``n`` of the point ``p`` (base_link) fixed to
@@ -242,8 +253,8 @@ class BodyCheck:
             if d < dist:
                 pair, dist = n.pair, d
             closing = -sum(x * y for x, y in zip(g, fixed))  # > 0: closing [m/s]
-            ahead = n.ahead * speed  # what the look-ahead sees closing [m/s]
-            rate = max(closing, ahead)
+            ahead = n.ahead * speed  # what only the look-ahead sees closing [m/s]
+            rate = max(closing, 0.0) + ahead
             if rate <= 0.0:
                 continue
             room = d - self.margin
@@ -257,10 +268,12 @@ class BodyCheck:
                 c = (closing - allowed) / gg
                 fixed = [x + c * y for x, y in zip(fixed, g)]
                 binding = binding or (n.pair, d)
-            if ahead > allowed:  # not in the gradient: slow the whole command
-                s = allowed / ahead
-                if s < scale:
-                    scale, binding = s, (n.pair, d)
+            if ahead > 0.0:  # not in the gradient: slow the whole command
+                after = max(-sum(x * y for x, y in zip(g, fixed)), 0.0) + ahead
+                if after > allowed:
+                    s = allowed / after
+                    if s < scale:
+                        scale, binding = s, (n.pair, d)
         if binding is not None:
             pair, dist = binding
         return fixed, scale, pair, dist
