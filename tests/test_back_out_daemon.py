@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -24,7 +22,7 @@ from mmctl.errors import IpcError
 from mmctl.model.geometry import BodyModel
 from mmctl.model.robot import RobotModel
 from mmctl.runtime.ipc import request
-from test_sim_process import ROOT, Sim, _end, _wait_auto_enabled
+from test_sim_process import Sim, _end, _run_daemon, _wait_auto_enabled
 
 pytestmark = pytest.mark.timeout(600)
 CFG = default_config()
@@ -62,14 +60,6 @@ def _normal(q_a: np.ndarray) -> list[float]:
     return (n / np.linalg.norm(n)).tolist()  # from the deck to the handle (base = world)
 
 
-def _daemon(sim: Sim, out: Path) -> subprocess.Popen[bytes]:
-    with out.open("ab") as f:
-        return subprocess.Popen(
-            [sys.executable, "-m", "mmctl.cli", "run", "--config", str(sim.config),
-             "--log-json"], stdout=f, stderr=subprocess.STDOUT, cwd=str(ROOT),
-            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-
-
 def _sim(tmp: Path, host: str, q_a: np.ndarray) -> Sim:
     return Sim(tmp, host, {"robot": {"q_init": [*q_a.tolist(), 0.0, 0.0, 0.0]}})
 
@@ -79,7 +69,7 @@ def test_inside_the_margin_the_daemon_arms_a_push_in_holds_and_a_push_out_moves(
     q0 = _deck_pose(MARGIN - 0.005)
     sim = _sim(tmp_path, _host(2), q0)
     out, sock = tmp_path / "daemon.log", tmp_path / "mmctl.sock"
-    daemon = _daemon(sim, out)
+    daemon = _run_daemon(sim, out)
     try:
         _wait_auto_enabled(sim, sock, out)  # armed there: within the tolerance
         n = np.array(_normal(q0))
@@ -111,7 +101,7 @@ def test_past_the_tolerance_enable_is_refused_and_says_why(tmp_path: Path) -> No
     q0 = _deck_pose(MARGIN - CFG.safety.collision_tolerance - 0.01)
     sim = _sim(tmp_path, _host(3), q0)
     out, sock = tmp_path / "daemon.log", tmp_path / "mmctl.sock"
-    daemon = _daemon(sim, out)
+    daemon = _run_daemon(sim, out)
     try:
         sim.wait_for(lambda: "auto_enable_failed" in out.read_text()
                      or "auto_enabled" in out.read_text(), "the daemon's auto-enable")
