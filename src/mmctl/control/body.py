@@ -281,12 +281,8 @@ class BodyCheck:
     def inside(self, q_a: Vec) -> tuple[tuple[str, str], float] | None:
         """The nearest pair and its distance when it is deeper than the tolerance allows
         (enabling is refused there), else None."""
-        body = self.body
-        gdata = pin.GeometryData(body.geom)  # (as in near)
-        pin.computeDistances(body.model, body.data, body.geom, gdata, q_a)
-        dists = [r.min_distance for r in gdata.distanceResults]
-        k = min(range(len(dists)), key=dists.__getitem__)
-        return (body.pairs[k], float(dists[k])) if dists[k] < self.floor else None
+        _, pair, dist = self._measure(q_a, -math.inf)  # (no pair watched: no gradients)
+        return (pair, dist) if pair is not None and dist < self.floor else None
 
 
 def _turned(before: tuple[float, ...] | None, now: tuple[float, ...] | None) -> bool:
