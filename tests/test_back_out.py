@@ -2,9 +2,9 @@
 
 The robot starts at rest at each limit the controller brakes at, and just beyond it
 where that is allowed: a joint's position margin, the singularity braking's condition
-number, a virtual wall, the self-collision margin.  Twelve pushes are tried (30 N
-along each axis of the handle's frame both ways, 3 N m about each): in every case the
-first cycle's command
+number, a virtual wall, the self-collision margin (and an ISO cap lowered at speed: its
+own test, last).  Twelve pushes are tried (30 N along each axis of the handle's frame
+both ways, 3 N m about each): in every case the first cycle's command
 
 * never takes the robot deeper (the limit's own measure does not fall along it), and
 * some push takes it out at once (the measure rises along that cycle's command, and
@@ -12,8 +12,8 @@ first cycle's command
 
 with no fault.  The measure is each limit's distance: the joint's room to its margin
 [rad], 1/sqrt(cond) less the braking's stop [1], the handle's height over the wall [m],
-the nearest parts' distance less the margin [m].  Through the running daemon the same
-holds (tests/test_sim_process.py starts the simulated robot there: a push out moves it).
+the nearest parts' distance less the margin [m].  Through the running daemon:
+tests/test_back_out_daemon.py (the collision margin, then the reduced profile at speed).
 """
 
 from __future__ import annotations
@@ -165,3 +165,50 @@ def test_at_or_inside_the_collision_margin(beyond: float) -> None:
     ctl = Controller(default_config())
     q, measure = _collision(ctl, beyond)
     _check(ctl, q, measure)
+
+
+def test_over_an_iso_cap_the_reduced_profile_switched_on_at_speed() -> None:
+    """The end-effector at the normal cap (> 0.4 m/s), then the reduced profile (0.25
+    m/s): the robot is over its cap.  The measure is the cap less the end-effector's
+    speed [m/s].  Every push, along the motion too, slows it in the first cycle (the
+    command heads for the new cap on the acceleration limits: nothing can go deeper),
+    every cycle after is within the acceleration limits, and the speed comes down to
+    the cap under a push along the motion, with no fault."""
+    ctl = Controller(default_config())
+    q0 = np.r_[ctl.q_des[:6], 0.0, 0.0, 0.0]
+    plant = Plant(ctl.cfg, q0)
+    state = ctl.initial_state("min-energy")
+    along = np.array([0.0, 80.0, 0.0, 0.0, 0.0, 0.0])
+    for _ in range(500):
+        x, xd = plant.state()
+        state, out = ctl.step(state, StepInputs(along, x, xd, T))
+        assert out.fault is None
+        plant.step(out.qdot_arm, out.base_twist, T)
+    state = ctl.set_profile(state, "reduced")
+    x, xd = plant.state()
+    J = ctl.model.update(x).J
+
+    def ee(qdot: np.ndarray) -> float:
+        return float(np.linalg.norm((J @ qdot)[:3]))
+
+    cap = ctl.cfg.limits.reduced_ee_speed
+    before = ee(state.qdot)
+    assert before > cap + 0.15, before  # over the cap by more than half of it
+    first = {}
+    for push in [*PUSHES, along, -along]:
+        _, out = ctl.step(state, StepInputs(push, x, xd, T))
+        assert out.fault is None, out.fault
+        first[tuple(push)] = ee(out.qdot)
+    assert max(first.values()) < before - 1e-4, (before, first)  # all out at once
+    lim = ctl.cfg.limits
+    acc = np.r_[lim.joint_acceleration, [lim.base_linear_acceleration] * 2,
+                lim.base_angular_acceleration] * T
+    prev = state.qdot
+    for k in range(500):  # pushed along: down to the cap on the acceleration limits
+        x, xd = plant.state()
+        state, out = ctl.step(state, StepInputs(along, x, xd, T))
+        assert out.fault is None
+        assert np.all(np.abs(out.qdot - prev) <= acc * (1 + 1e-9)), k
+        prev = out.qdot
+        plant.step(out.qdot_arm, out.base_twist, T)
+    assert float(np.linalg.norm((ctl.model.update(x).J @ prev)[:3])) <= cap * (1 + 1e-9)

@@ -1,7 +1,9 @@
 """Backing out of the self-collision margin through the running daemon (issue 29,
 point 3): the simulated robot starts with its handle 5 mm inside the margin above the
 base's deck; `mmctl run` arms there (no fault: within the tolerance), a push deeper
-does not take it deeper, and a push out moves it out.  A start past the tolerance is
+does not take it deeper, and a push out moves it out; pushed on at speed there, the
+reduced profile switched on brings the end-effector down to its cap, armed, with no
+fault.  A start past the tolerance is
 the ``self_collision`` fault present: `enable` is refused and says why.
 
 The same guarantees for every limit over the pure update: tests/test_back_out.py."""
@@ -90,6 +92,20 @@ def test_inside_the_margin_the_daemon_arms_a_push_in_holds_and_a_push_out_moves(
         sim.wait_for(lambda: distance() > MARGIN + 0.02, "the handle 2 cm out of the margin")
         sim.call("push", force=None)
         assert request(sock, "status", timeout=30.0)["state"] == "armed"
+
+        # over an ISO cap: the reduced profile (0.25 m/s) switched on at speed
+        def ee_speed() -> float:
+            st = request(sock, "status", timeout=30.0)
+            assert st["state"] == "armed" and st["fault"] is None, st
+            return float(st["robot"]["ee_speed_m_s"] or 0.0)
+
+        sim.call("push", force=[0.0, 80.0, 0.0])
+        sim.wait_for(lambda: ee_speed() > 0.4, "the end-effector over 0.4 m/s")
+        request(sock, "profile", profile="reduced", timeout=30.0)
+        sim.wait_for(lambda: ee_speed() < 0.25 * 1.03, "the end-effector down to 0.25 m/s")
+        speeds = [ee_speed() for _ in range(5)]  # pushed on: it stays there, and moves
+        assert all(0.1 < v < 0.25 * 1.03 for v in speeds), speeds
+        sim.call("push", force=None)
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(120) == 0, out.read_text()[-3000:]
     finally:
