@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -145,3 +146,90 @@ def test_connect_addresses() -> None:
     assert grpc_url("rerun+http://127.0.0.1:1/proxy") == "rerun+http://127.0.0.1:1/proxy"
     with pytest.raises(TelemetryError, match="HOST:PORT"):
         grpc_url("localhost")
+
+
+def test_the_3d_view_draws_the_robot_from_its_urdf_turned_by_the_arms_joints(
+        tmp_path: Path) -> None:
+    """With the robot's URDF (`mmctl model urdf`), the recording holds every shape of
+    it as rerun's URDF loader files them, and joint transforms in named frames that,
+    chained from the base's frame to the handle at a recorded cycle, put the handle
+    where the model's forward kinematics does for that cycle's joints."""
+    import pinocchio as pin
+    import rerun.urdf as ru
+    from rerun.chunk import RrdReader
+
+    from mmctl.model import RobotModel
+    from mmctl.model.geometry import body_shapes
+    from mmctl.model.ur10e import JOINT_NAMES
+    from mmctl.model.urdf import link_name, urdf
+
+    cfg = default_config()
+    path = tmp_path / "robot.rrd"
+    sink = RerunSink(Destinations(record=str(path)), recording_name="test",
+                     static={"period_s": 0.002}, robot_urdf=urdf(cfg, collision=False))
+    pub = Publisher(sink, scene_rate_hz=50.0, scene=SceneBuilder(cfg.robot))
+    pub.start()
+    sent = {s.cycle: s for s in synthetic_samples(400)}
+    for s in sent.values():
+        pub.put(s)
+        if s.cycle % 40 == 39:  # a scene frame is the newest sample at a wake-up
+            assert pub.wait_published(pub.ring.accepted, WAIT)
+    pub.close()
+    assert pub.error is None
+
+    assert layout.ARM_JOINT_ENTITIES == tuple(f"{layout.ROBOT_JOINTS}/{n}_joint"
+                                              for n in JOINT_NAMES)
+    store = RrdReader(path).stream().collect()
+    static = store.reader(index=None).to_arrow_table()
+    drawn = {c.split(":")[0].rsplit("/", 1)[1] for c in static.column_names
+             if c.startswith(f"/{layout.ROBOT}/") and "visual_geometries" in c}
+    model = RobotModel(cfg.robot)
+    for shape in body_shapes(cfg.robot, model.mount):
+        assert shape.name in drawn, (shape.name, drawn)
+        if shape.kind == "capsule":
+            assert {f"{shape.name}_end_a", f"{shape.name}_end_b"} <= drawn
+    assert not any("collision_geometries" in c for c in static.column_names)
+
+    tree_file = tmp_path / "robot.urdf"  # the fixed joints, as rerun's parser reads them
+    tree_file.write_text(urdf(cfg, collision=False))
+    tree = ru.UrdfTree.from_file_path(tree_file)
+
+    def fixed(joint: str) -> pin.SE3:
+        found = tree.get_joint_by_name(joint)
+        assert found is not None, joint
+        tf = found.compute_transform(0.0)
+        assert tf.translation is not None and tf.quaternion is not None
+        (t,) = tf.translation.as_arrow_array().to_pylist()
+        (x, y, z, w), = tf.quaternion.as_arrow_array().to_pylist()
+        return pin.SE3(pin.Quaternion(w, x, y, z).matrix(), np.array(t))
+
+    root = f"/{layout.ROBOT_JOINTS}/root:Transform3D:"
+    assert static.column(root + "parent_frame").to_pylist()[0] == [f"tf#/{layout.BASE}"]
+    assert static.column(root + "child_frame").to_pylist()[0] == ["base_link"]
+    table = store.reader(index=layout.TIMELINE_CYCLE,
+                         contents=[f"/{e}" for e in layout.ARM_JOINT_ENTITIES]).to_arrow_table()
+    cycles = table.column(layout.TIMELINE_CYCLE).to_pylist()
+
+    def col(entity: str, component: str) -> list[Any]:
+        values: list[Any] = table.column(f"/{entity}:Transform3D:{component}").to_pylist()
+        return values
+
+    rows = [i for i in range(len(cycles))
+            if all(col(e, "quaternion")[i] for e in layout.ARM_JOINT_ENTITIES)]
+    assert len(rows) >= 3, len(rows)  # (one per scene frame)
+    links = ["ur_base"] + [link_name(j) for j in range(1, 7)]
+    for i in rows:
+        pose = fixed("ur_base_joint")
+        for j, entity in enumerate(layout.ARM_JOINT_ENTITIES):
+            assert col(entity, "parent_frame")[i] == [links[j]]
+            assert col(entity, "child_frame")[i] == [links[j + 1]]
+            (t,) = col(entity, "translation")[i]
+            (x, y, z, w), = col(entity, "quaternion")[i]
+            pose = pose * pin.SE3(pin.Quaternion(w, x, y, z).normalized().matrix(),
+                                  np.array(t))
+        pose = pose * fixed("flange_joint") * fixed("handle_joint")
+        q_a = np.asarray(sent[cycles[i]].q_a, dtype=float)[:6]
+        expected = model.fk_base(np.concatenate((q_a, np.zeros(3))), "tool")
+        # (float32 on the wire: 1e-7 per number over 1.5 m)
+        np.testing.assert_allclose(pose.translation, expected.translation, atol=2e-6)
+        np.testing.assert_allclose(pose.rotation, expected.rotation, atol=2e-6)

@@ -102,8 +102,13 @@ def test_daemon_records_trial_and_metrics_match(tmp_path: Path, loopback_host: s
     assert counts[layout.LOOP_TIMING.path] in (full - 1, full)
     assert daemon.loop.cycles >= full
     for entity in (layout.BASE, layout.ARM, layout.ARM_JOINTS, layout.HANDLE,
-                   layout.TWIST_ARROW, layout.FORCE_ARROW, layout.P_DES, layout.EVENTS):
+                   layout.TWIST_ARROW, layout.FORCE_ARROW, layout.P_DES, layout.EVENTS,
+                   *layout.ARM_JOINT_ENTITIES):
         assert any(c.startswith(f"/{entity}:") for c in table.column_names), entity
+    # the robot drawn from its URDF (tests/test_recording.py checks its pose)
+    static = store.reader(index=None).to_arrow_table()
+    assert any(c.startswith(f"/{layout.ROBOT}/") and "/deck:Boxes3D" in c
+               for c in static.column_names)
 
     # -- metrics: recording == what the daemon logged -------------------------------------
     (trial,) = rec.trials

@@ -53,19 +53,22 @@ def link_name(joint: int) -> str:
     return "base_link" if joint == 0 else f"{ARM_LINKS[joint - 1]}_link"
 
 
-def _shape_xml(s: Shape) -> list[str]:
-    """The shape as URDF geometry elements (origin, geometry) pairs."""
+def _shape_xml(s: Shape) -> list[tuple[str, str]]:
+    """The shape as URDF geometry elements: (a name unique in the robot, origin and
+    geometry); a capsule's end spheres are ``NAME_end_a`` and ``NAME_end_b`` (viewers
+    such as rerun's file one entity per name)."""
     frame = placement(s)
     if s.kind == "box":
         size = " ".join(_num(v) for v in s.b)
-        return [f'{_origin(frame)}<geometry><box size="{size}"/></geometry>']
+        return [(s.name, f'{_origin(frame)}<geometry><box size="{size}"/></geometry>')]
     cylinder = (f'<cylinder radius="{_num(s.radius)}" '
                 f'length="{_num(max(length(s), 1e-4))}"/>')
-    out = [f'{_origin(frame)}<geometry>{cylinder}</geometry>']
+    out = [(s.name, f'{_origin(frame)}<geometry>{cylinder}</geometry>')]
     if s.kind == "capsule":
-        for end in (s.a, s.b):
-            out.append(f'{_origin(pin.SE3(np.eye(3), np.asarray(end)))}'
-                       f'<geometry><sphere radius="{_num(s.radius)}"/></geometry>')
+        for tag, end in (("a", s.a), ("b", s.b)):
+            out.append((f"{s.name}_end_{tag}",
+                        (f'{_origin(pin.SE3(np.eye(3), np.asarray(end)))}'
+                        f'<geometry><sphere radius="{_num(s.radius)}"/></geometry>')))
     return out
 
 
@@ -77,8 +80,18 @@ def _inertial(mass: float, com: np.ndarray, frame: pin.SE3, tensor: np.ndarray) 
             f'iyy="{_num(t[1, 1])}" iyz="{_num(t[1, 2])}" izz="{_num(t[2, 2])}"/></inertial>')
 
 
-def urdf(cfg: Config, base: str = "fixed", name: str = "mmctl_mobile_manipulator") -> str:
-    """The robot of ``cfg`` as URDF text (see the module docstring)."""
+def arm_joint_origins() -> list[pin.SE3]:
+    """The six arm joints' origins in their parent links (the URDF's ``<origin>``; the
+    joint turns about its z after it): ``ur_base`` for the first, then each DH step's
+    constant part."""
+    return [pin.SE3.Identity()] + [dh_transform(i) for i in range(5)]
+
+
+def urdf(cfg: Config, base: str = "fixed", name: str = "mmctl_mobile_manipulator",
+         collision: bool = True) -> str:
+    """The robot of ``cfg`` as URDF text (see the module docstring); ``collision``
+    False leaves out the ``<collision>`` elements (a viewer's copy: the same shapes as
+    the visuals)."""
     if base not in BASE_CHOICES:
         raise ValueError(f"base must be one of {BASE_CHOICES}, not {base!r}")
     robot = cfg.robot
@@ -95,10 +108,11 @@ def urdf(cfg: Config, base: str = "fixed", name: str = "mmctl_mobile_manipulator
         body = [inertial] if inertial else []
         for s in by_link.get(lname, []):
             material = s.name if s.name in _COLOURS else "arm"
-            for geom in _shape_xml(s):
-                body.append(f'<visual name={quoteattr(s.name)}>{geom}'
+            for gname, geom in _shape_xml(s):
+                body.append(f'<visual name={quoteattr(gname)}>{geom}'
                             f'<material name="{material}"/></visual>')
-                body.append(f'<collision name={quoteattr(s.name)}>{geom}</collision>')
+                if collision:
+                    body.append(f'<collision name={quoteattr(gname)}>{geom}</collision>')
         inner = "\n    ".join(body)
         out.append(f'  <link name="{lname}">\n    {inner}\n  </link>' if body
                    else f'  <link name="{lname}"/>')
@@ -131,12 +145,13 @@ def urdf(cfg: Config, base: str = "fixed", name: str = "mmctl_mobile_manipulator
     joint("ur_base_joint", "fixed", "base_link", "ur_base", model.mount)
     lim = cfg.limits
     parent = "ur_base"
+    origins = arm_joint_origins()
     for i in range(6):
         child = link_name(i + 1)
         dh = dh_transform(i)
         inertia = link_inertia(i)
         link(child, _inertial(inertia.mass, inertia.lever, dh, inertia.inertia))
-        origin = ident if i == 0 else dh_transform(i - 1)
+        origin = origins[i]
         limit = (f'<limit lower="{_num(lim.joint_position_min[i])}" '
                  f'upper="{_num(lim.joint_position_max[i])}" '
                  f'effort="{_num(UR10E_EFFORT[i])}" velocity="{_num(lim.joint_velocity[i])}"/>')

@@ -29,14 +29,18 @@ _INDEX_KIND = {b"rerun:kind": b"index"}
 class ArrowEncoder:
     """Builds the record batches (needs ``rerun`` and ``pyarrow``, passed in)."""
 
-    def __init__(self, rr: Any, pa: Any, group: int = 3):
+    def __init__(self, rr: Any, pa: Any, group: int = 3,
+                 joints: list[tuple[str, str, str, tuple[float, ...]]] | None = None):
+        """``joints``: the URDF's six arm joints (entity, parent link, child link, origin
+        translation), sent with every scene frame (None: not)."""
         self.pa = pa
         self.group = max(1, int(group))  #: entities per record batch
         z = np.zeros((1, 3))
         cols = [*rr.Scalars.columns(scalars=np.zeros((1, 1))),
                 *rr.Transform3D.columns(translation=z, quaternion=[[0.0, 0.0, 0.0, 1.0]]),
                 *rr.Points3D.columns(positions=z), *rr.LineStrips3D.columns(strips=[z]),
-                *rr.Arrows3D.columns(vectors=z, origins=z)]
+                *rr.Arrows3D.columns(vectors=z, origins=z),
+                *rr.Transform3D.columns(parent_frame=["a"], child_frame=["b"])]
         #: short component name ("scalars", "translation", ...) -> (descriptor, arrow type)
         self.kinds: dict[str, tuple[Any, Any]] = {}
         for c in cols:
@@ -54,6 +58,16 @@ class ArrowEncoder:
         self._fields: dict[tuple[str, str], Any] = {}
         self._offset_cache: dict[int, Any] = {}
         self._schemas: dict[tuple[tuple[str, str], ...], Any] = {}
+        #: per arm joint: its entity and its constant one-row columns (frames, origin)
+        self.joints: list[tuple[str, list[tuple[str, Any]]]] = []
+        for entity, parent, child, xyz in joints or ():
+            one = pa.array(np.array([0, 1], np.int32))
+            const = [(kind, pa.ListArray.from_arrays(one, pa.array([name], self.kinds[kind][1].value_type)))
+                     for kind, name in (("parent_frame", parent), ("child_frame", child))]
+            t = pa.FixedSizeListArray.from_arrays(pa.array(np.asarray(xyz, np.float32)),
+                                                  type=self._fsl[3])
+            const.append(("translation", pa.ListArray.from_arrays(one, t)))
+            self.joints.append((entity, const))
 
     # -- fields and schemas -------------------------------------------------------------
     def field(self, path: str, kind: str) -> Any:
@@ -170,6 +184,13 @@ class ArrowEncoder:
         cols.append((layout.BASE, "quaternion", pa.ListArray.from_arrays(one, q4.slice(0, 1))))
         cols.append((layout.HANDLE, "quaternion", pa.ListArray.from_arrays(one, q4.slice(1, 1))))
         cols.append((layout.ARM, "strips", self.strips([frame.arm_points])))
+        if self.joints:  # the URDF's arm, turned: each joint's whole named-frame transform
+            jq = pa.FixedSizeListArray.from_arrays(
+                pa.array(frame.joint_quaternions.astype(np.float32).ravel()),
+                type=self._fsl[4])
+            for i, (entity, const) in enumerate(self.joints):
+                cols.extend((entity, kind, arr) for kind, arr in const)
+                cols.append((entity, "quaternion", pa.ListArray.from_arrays(one, jq.slice(i, 1))))
         if path is not None and len(path) >= 2:
             cols.append((layout.BASE_PATH, "strips", self.strips([path])))
         return self._batch(np.array([cycle]), np.array([t_ns]), cols)

@@ -76,6 +76,17 @@ TWIST_ARROW = "world/base/v_d"         # Arrows3D: desired linear velocity at th
 FORCE_ARROW = "world/base/f_h"         # Arrows3D: human force at the handle
 P_DES = "world/base/p_des"             # Points3D: preferred position FK(q_des)
 BASE_PATH = "world/odometry_path"      # LineStrips3D: recent base positions
+#: the robot's URDF (`mmctl model urdf`, its visuals) under this prefix, static, as
+#: rerun's URDF loader files it (shapes in the links' named frames, the joints at zero
+#: on ``/tf_static``); its root link ``base_link`` hangs on the frame of :data:`BASE`
+ROBOT = "world/base/robot"
+#: ``ROBOT_JOINTS/root`` (static: BASE's frame -> base_link) and one entity per arm
+#: joint, ``ROBOT_JOINTS/<joint name>``: its Transform3D in named frames (parent link ->
+#: child link) at every scene frame
+ROBOT_JOINTS = "world/base/robot/joints"
+#: the arm's six joints' entities, in the arm's joint order
+ARM_JOINT_ENTITIES = tuple(f"{ROBOT_JOINTS}/{n}_joint" for n in (
+    "shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3"))
 
 #: arrow scales: a drawn arrow is this many metres per [m/s] / per [N]
 TWIST_ARROW_SCALE = 1.0

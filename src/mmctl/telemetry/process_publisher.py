@@ -51,7 +51,7 @@ class ProcessPublisher:
 
     destinations, recording_name, static, mecanum: as for
     :class:`~mmctl.telemetry.rerun_sink.RerunSink`; robot: the model for the 3-D view
-    (None: no 3-D view); rates and queue_size: as for
+    (None: no 3-D view); robot_urdf: as for the sink (the robot drawn from its URDF); rates and queue_size: as for
     :class:`~mmctl.telemetry.publisher.Publisher`; timing: the loop's TimingRing (the
     rows' previous-cycle timing); avoid_cpus: CPUs the child stays off (the loop's
     ``loop.cpu_affinity``) while another is allowed; start_timeout / close_timeout
@@ -64,7 +64,7 @@ class ProcessPublisher:
     def __init__(self, destinations: Destinations, *, recording_name: str = "mmctl",
                  static: dict[str, float | int | str] | None = None,
                  mecanum: MecanumConfig | None = None, robot: RobotConfig | None = None,
-                 loop_rate_hz: float = 500.0, plot_rate_hz: float = 100.0,
+                 robot_urdf: str | None = None, loop_rate_hz: float = 500.0, plot_rate_hz: float = 100.0,
                  scene_rate_hz: float = 15.0, queue_size: int = 4096, timing: Any = None,
                  avoid_cpus: tuple[int, ...] = (), start_timeout: float = 60.0,
                  close_timeout: float = 30.0):
@@ -72,6 +72,7 @@ class ProcessPublisher:
         self._child_args: dict[str, Any] = {
             "destinations": destinations, "recording_name": recording_name,
             "static": dict(static or {}), "mecanum": mecanum, "robot": robot,
+            "robot_urdf": robot_urdf,
             "loop_rate_hz": loop_rate_hz, "plot_rate_hz": plot_rate_hz,
             "scene_rate_hz": scene_rate_hz, "avoid_cpus": tuple(avoid_cpus)}
         self.queue_size = queue_size
@@ -266,17 +267,26 @@ def _background(avoid_cpus: tuple[int, ...] = ()) -> None:
     except OSError:
         tids = [0]
     for tid in tids:
-        if avoid_cpus and hasattr(os, "sched_setaffinity"):
-            others = os.sched_getaffinity(tid) - set(avoid_cpus)
-            if others:
-                os.sched_setaffinity(tid, others)
-        if hasattr(os, "SCHED_IDLE"):
-            try:
-                os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
-                continue
-            except OSError:
-                pass
-        os.setpriority(os.PRIO_PROCESS, tid, NICE)
+        try:
+            _background_thread(tid, avoid_cpus)
+        except ProcessLookupError:  # the thread ended since the listing (rerun's
+            pass                    # short-lived loader threads do)
+
+
+def _background_thread(tid: int, avoid_cpus: tuple[int, ...]) -> None:
+    if avoid_cpus and hasattr(os, "sched_setaffinity"):
+        others = os.sched_getaffinity(tid) - set(avoid_cpus)
+        if others:
+            os.sched_setaffinity(tid, others)
+    if hasattr(os, "SCHED_IDLE"):
+        try:
+            os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+            return
+        except ProcessLookupError:
+            raise
+        except OSError:
+            pass
+    os.setpriority(os.PRIO_PROCESS, tid, NICE)
 
 
 def _foreground(nice: int) -> None:
@@ -299,7 +309,8 @@ def _foreground(nice: int) -> None:
 
 def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destinations,
            recording_name: str, static: dict[str, float | int | str],
-           mecanum: MecanumConfig | None, robot: RobotConfig | None, loop_rate_hz: float,
+           mecanum: MecanumConfig | None, robot: RobotConfig | None,
+           robot_urdf: str | None, loop_rate_hz: float,
            plot_rate_hz: float, scene_rate_hz: float, avoid_cpus: tuple[int, ...] = ()) -> None:
     """The child: map the ring, open the sink, run the publisher until told to close."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -316,7 +327,7 @@ def _serve(conn: Connection, ring_path: str, size: int, *, destinations: Destina
 
             scene = SceneBuilder(robot)
         sink = RerunSink(destinations, recording_name=recording_name, static=static,
-                         mecanum=mecanum)
+                         mecanum=mecanum, robot_urdf=robot_urdf)
         pub = Publisher(sink, loop_rate_hz=loop_rate_hz, plot_rate_hz=plot_rate_hz,
                         scene_rate_hz=scene_rate_hz, ring=ring, scene=scene, pace=False,
                         mecanum=mecanum)

@@ -14,6 +14,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -114,17 +115,20 @@ class RerunSink:
 
     destinations: where the stream goes; recording_name: a label shown by the viewer;
     static: name -> value logged once under ``telemetry/info`` (rates, period...);
-    mecanum: base geometry for the drawn footprint.  Call :meth:`open` first (imports
+    mecanum: base geometry for the drawn footprint; robot_urdf: the robot as URDF text
+    (:func:`mmctl.model.urdf.urdf`), drawn from its shapes and turned by the scene
+    frames' joints (None: the stick figure only).  Call :meth:`open` first (imports
     rerun, opens the sinks); :meth:`close` flushes and is idempotent.
     """
 
     def __init__(self, destinations: Destinations, recording_name: str = "mmctl",
                  static: dict[str, float | int | str] | None = None,
-                 mecanum: MecanumConfig | None = None):
+                 mecanum: MecanumConfig | None = None, robot_urdf: str | None = None):
         self.destinations = destinations
         self.recording_name = recording_name
         self.static = dict(static or {})
         self.mecanum = mecanum if mecanum is not None else MecanumConfig()
+        self.robot_urdf = robot_urdf
         self.viewer: subprocess.Popen[bytes] | None = None
         self._rec: Any = None
         self._rr: Any = None
@@ -159,8 +163,11 @@ class RerunSink:
             rec.set_sinks(*sinks, default_blueprint=layout.blueprint())
         self._rec = rec
         rec.send_recording_name(self.recording_name)
-        self._enc = ArrowEncoder(rr, pa)
+        joints = None if self.robot_urdf is None else self._robot_joints(self.robot_urdf)
+        self._enc = ArrowEncoder(rr, pa, joints=joints)
         self._log_static()
+        if self.robot_urdf is not None:
+            self._log_robot(self.robot_urdf)
 
     def close(self) -> None:
         """Flush everything to the destinations and close them (idempotent)."""
@@ -244,6 +251,37 @@ class RerunSink:
             rec.log(path, style, static=True)
         if self.static:
             rec.log("telemetry/info", rr.AnyValues(**self.static), static=True)
+
+
+    def _robot_joints(self, text: str) -> list[tuple[str, str, str, tuple[float, ...]]]:
+        """The arm's six joints as rerun's URDF parser reads ``text``: (entity, parent
+        link, child link, origin translation), in :data:`layout.ARM_JOINT_ENTITIES`'
+        order."""
+        import rerun.urdf as ru
+
+        with tempfile.TemporaryDirectory(prefix="mmctl-urdf-") as tmp:
+            path = Path(tmp) / "mmctl.urdf"
+            path.write_text(text)
+            tree = ru.UrdfTree.from_file_path(path)
+        out = []
+        for entity in layout.ARM_JOINT_ENTITIES:
+            joint = tree.get_joint_by_name(entity.rsplit("/", 1)[1])
+            if joint is None:
+                raise TelemetryError(f"the robot's URDF has no joint {entity.rsplit('/', 1)[1]!r}")
+            out.append((entity, joint.parent_link, joint.child_link, tuple(joint.origin_xyz)))
+        return out
+
+    def _log_robot(self, text: str) -> None:
+        """The URDF through rerun's own loader (its shapes, and its joints as static
+        named-frame transforms at zero), and its root link on the base's frame; each
+        scene frame then sends the arm's six joints' transforms (as rerun's URDF
+        how-to does)."""
+        rr, rec = self._rr, self._rec
+        rec.log_file_from_contents("mmctl.urdf", text.encode(),
+                                   entity_path_prefix=layout.ROBOT, static=True)
+        rec.log(f"{layout.ROBOT_JOINTS}/root",
+                rr.Transform3D(parent_frame=f"tf#/{layout.BASE}", child_frame="base_link"),
+                static=True)
 
 
 def _no_pace() -> None:

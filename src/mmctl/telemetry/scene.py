@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from mmctl.config.base import MecanumConfig
 from mmctl.config.robot import RobotConfig
 from mmctl.model import NA, RobotModel
+from mmctl.model.urdf import arm_joint_origins
 from mmctl.telemetry import layout
 from mmctl.telemetry import ring as tr
 from mmctl.telemetry.batch import base_frame
@@ -41,7 +42,9 @@ class SceneFrame(NamedTuple):
     in the base frame [m]; handle_translation: (3,) [m] and handle_quaternion (4,)
     (x, y, z, w): the handle frame in the base frame; twist_vector, force_vector: (3,)
     arrows at the handle [m] (scaled by :data:`layout.TWIST_ARROW_SCALE`,
-    :data:`layout.FORCE_ARROW_SCALE`); p_des: (3,) preferred position in the base frame [m].
+    :data:`layout.FORCE_ARROW_SCALE`); p_des: (3,) preferred position in the base frame [m];
+    joint_quaternions: (6, 4) (x, y, z, w) each arm joint's child link in its parent
+    (the URDF joint's origin, then the turn about its z: :data:`layout.ROBOT_JOINTS`).
     """
 
     base_translation: F64
@@ -52,6 +55,7 @@ class SceneFrame(NamedTuple):
     twist_vector: F64
     force_vector: F64
     p_des: F64
+    joint_quaternions: F64
 
 
 def yaw_quaternion(yaw: float) -> F64:
@@ -75,6 +79,7 @@ class SceneBuilder:
         self._tool = self.model.frame_id("tool")
         self._flange = self.model.frame_id("flange")
         self._mount = np.asarray(robot.arm_mount, dtype=float)
+        self._origins = [o.rotation for o in arm_joint_origins()]
 
     def frame(self, s: TelemetrySample) -> SceneFrame:
         """Draw one sample (see :class:`SceneFrame`)."""
@@ -99,4 +104,16 @@ class SceneBuilder:
             twist_vector=v_d[:3] * layout.TWIST_ARROW_SCALE,
             force_vector=f_h[:3] * layout.FORCE_ARROW_SCALE,
             p_des=base_frame(tr.rows_of([s]), tr.P_DES)[0],  # as the plotted series
+            joint_quaternions=self.joint_quaternions(q_a),
         )
+
+    def joint_quaternions(self, q_a: F64) -> F64:
+        """(6, 4) (x, y, z, w): each arm joint's child link in its parent link at the
+        arm's joints ``q_a`` (6,): the URDF's origin times the turn about z."""
+        out = np.empty((NA, 4))
+        for i, (origin, angle) in enumerate(zip(self._origins, q_a.tolist())):
+            c, s_ = math.cos(angle), math.sin(angle)
+            rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+            quat = pin.Quaternion(origin @ rz)
+            out[i] = (quat.x, quat.y, quat.z, quat.w)
+        return out

@@ -93,6 +93,7 @@ class TelemetryService:
         from mmctl.extras import require
 
         require("telemetry", "telemetry (--viewer, --connect, --record)")
+        from mmctl.model.urdf import urdf
         from mmctl.telemetry.publisher import Publisher
         from mmctl.telemetry.rerun_sink import RerunSink
         from mmctl.telemetry.scene import SceneBuilder
@@ -101,17 +102,19 @@ class TelemetryService:
         static: dict[str, float | int | str] = {"period_s": 1.0 / cfg.loop.rate_hz, "loop_rate_hz": cfg.loop.rate_hz,
                   "plot_rate_hz": t.plot_rate, "scene_rate_hz": t.scene_rate,
                   "queue_size": t.queue_size, "config": cfg.name, "mmctl": __version__}
+        robot_urdf = urdf(cfg, collision=False)  # the 3-D view draws the robot from it
         if t.process:
             from mmctl.telemetry.process_publisher import ProcessPublisher
 
             self.publisher = ProcessPublisher(
                 self.destinations, recording_name=cfg.name, static=static,
-                mecanum=cfg.base.mecanum, robot=cfg.robot, loop_rate_hz=cfg.loop.rate_hz,
+                mecanum=cfg.base.mecanum, robot=cfg.robot, robot_urdf=robot_urdf,
+                loop_rate_hz=cfg.loop.rate_hz,
                 plot_rate_hz=t.plot_rate, scene_rate_hz=t.scene_rate,
                 queue_size=t.queue_size, timing=ring, avoid_cpus=tuple(cfg.loop.cpu_affinity))
         else:
             sink = RerunSink(self.destinations, recording_name=cfg.name, static=static,
-                             mecanum=cfg.base.mecanum)
+                             mecanum=cfg.base.mecanum, robot_urdf=robot_urdf)
             self.publisher = Publisher(sink, loop_rate_hz=cfg.loop.rate_hz,
                                        plot_rate_hz=t.plot_rate, scene_rate_hz=t.scene_rate,
                                        queue_size=t.queue_size, timing=ring,
