@@ -28,7 +28,8 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
                             {**LOAD_PROOF, "telemetry": {"process": process}}, "bench.yaml")
     rc = main(["bench", "loop", "--seconds", "1", "--json", "--telemetry", "--config", str(path),
                "--host", loopback_host, "--cpu-dma-latency", "1500", "--telemetry-seconds", "2",
-               "--telemetry-windows", "5", "--latency-steps", "4" if process else "0"])
+               "--telemetry-windows", "5", "--latency-steps", "4" if process else "0",
+               *([] if process else ["--collision-ab", "4"])])
     out, err = capsys.readouterr()
     assert rc == 0, err[-3000:]
     rep = json.loads(out)
@@ -82,6 +83,13 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
     else:
         assert "force_to_command" not in rep
     assert rep["faults"] >= 0 and isinstance(rep["faults"], int)
+    if not process:  # the self-collision check on vs off, 4 pairs of 0.5 s windows
+        ab = rep["collision_check"]
+        assert ab["pairs"] == 4 and ab["seconds"] == 4.0 and ab["faults"] >= 0
+        for key in ("on", "off"):
+            assert KEYS <= set(ab[key]) and ab[key]["cycles"] > 10, key
+    else:
+        assert "collision_check" not in rep
 
 
 def test_a_fault_during_the_run_is_flagged() -> None:
@@ -125,7 +133,7 @@ def test_a_bad_cpu_list_is_refused_naming_the_value(text: str,
     assert "--cpu-affinity" in err and repr(text) in err
 
 
-@pytest.mark.parametrize("flag", ["--seconds", "--telemetry-seconds"])
+@pytest.mark.parametrize("flag", ["--seconds", "--telemetry-seconds", "--collision-ab"])
 def test_a_non_positive_duration_is_refused_naming_the_flag(
         flag: str, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "loop", "--telemetry", flag, "0"]) != 0

@@ -70,6 +70,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--telemetry-aa", action="store_true",
                    help="--telemetry as an A/A check: the 'on' windows install no hook "
                         "either (the growth it prints is the comparison's own noise)")
+    p.add_argument("--collision-ab", type=float, metavar="S",
+                   help="also time the loop with the self-collision check on and off "
+                        "(safety.collision_check, swapped on the loop as `mmctl set` "
+                        "swaps a controller) in alternating windows of the same run, S "
+                        "seconds in all; JSON key 'collision_check'")
 
 
 def _cpus(text: str) -> tuple[int, ...]:
@@ -117,6 +122,8 @@ def run(args: argparse.Namespace) -> int:
         args.telemetry_windows = max(10, round(args.telemetry_seconds))
     if args.telemetry_windows < 1:
         raise MmctlError(f"--telemetry-windows {args.telemetry_windows}: must be >= 1")
+    if args.collision_ab is not None and args.collision_ab <= 0:
+        raise MmctlError(f"--collision-ab {args.collision_ab:g}: must be > 0 [s]")
     if args.cpu_dma_latency is not None and not -1 <= args.cpu_dma_latency <= MAX_US:
         raise MmctlError(f"--cpu-dma-latency {args.cpu_dma_latency}: must be -1 (no request) "
                          f"or 0..{MAX_US} us")
@@ -206,6 +213,9 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         daemon.tare_and_enable(30.0)
         sim.start_human()
         time.sleep(1.0)  # warm-up
+        if args.collision_ab:  # first: armed from the start
+            result["collision_check"] = _collision_ab(daemon, cfg, args.collision_ab,
+                                                      max(4, round(args.collision_ab / 2)))
         result["loop"], result["sleep_baseline"] = _interleaved(daemon, wait, args.seconds,
                                                                 args.windows)
         result["loop"]["armed_at_end"] = result["sleep_baseline"]["armed_at_end"] = (
@@ -429,6 +439,50 @@ def _interleaved(daemon: Any, wait: AlternatingWait, seconds: float, windows: in
     return out[0], out[1]
 
 
+def _collision_ab(daemon: Any, cfg: Any, seconds: float, pairs: int
+                  ) -> dict[str, Any]:
+    """``pairs`` pairs of windows (``seconds`` in all) with the self-collision check on,
+    then off: the controller swapped on the loop between them (as `mmctl set` does: the
+    state carries over), the simulated person pushing throughout.  Pooled figures of
+    each (the first cycles after a swap not counted), and the daemon's configuration
+    back at the end."""
+    import dataclasses
+
+    import numpy as np
+
+    from mmctl.control.step import Controller
+    from mmctl.control.update import Install
+    from mmctl.model.robot import RobotModel
+    from mmctl.runtime.timing import concat, cycle_rows
+
+    key = "safety.collision_check"
+    configs = {on: dataclasses.replace(cfg, safety=dataclasses.replace(
+        cfg.safety, collision_check=on)) for on in (True, False)}
+    controllers = {on: Controller(c, RobotModel(c.robot)) for on, c in configs.items()}
+    ring = daemon.ring
+    window = seconds / (2 * pairs)
+    snaps: dict[bool, list[Any]] = {True: [], False: []}
+    faults = daemon.safety.faults
+    try:
+        for i in range(2 * pairs):
+            on = i % 2 == 0
+            daemon.runtime.on_loop(Install(configs[on], controllers[on], key))
+            time.sleep(_SETTLE)
+            c0 = ring.count
+            time.sleep(window)
+            snaps[on].append(ring.snapshot(ring.count - c0))
+    finally:
+        original = configs[bool(cfg.safety.collision_check)]
+        daemon.runtime.on_loop(Install(original, Controller(original, RobotModel(original.robot)), key))
+    out: dict[str, Any] = {"seconds": seconds, "pairs": pairs,
+                           "faults": daemon.safety.faults - faults,
+                           "armed_at_end": daemon.safety.armed}
+    for on in (True, False):
+        steps = np.concatenate([cycle_rows(daemon.step_ns, s) for s in snaps[on]]) / 1e3
+        out["on" if on else "off"] = _figures(concat(snaps[on]), steps[steps > 0])
+    return out
+
+
 _SETTLE = 0.05
 """[s] after a switch of the wait, not counted (the switch lands at the next cycle)."""
 
@@ -457,6 +511,18 @@ def _print_table(r: dict[str, Any]) -> None:
               f"{r['telemetry_seconds'] / t['phases']:g} s windows):")
         print(format_report(r["telemetry"]))
         print(telemetry_verdict(r["telemetry"]))
+    ab = r.get("collision_check")
+    if ab:
+        print(f"\nself-collision check on vs off ({ab['pairs']} alternating pairs of "
+              f"{ab['seconds'] / (2 * ab['pairs']):g} s windows, the same run; faults "
+              f"{ab['faults']}, armed at the end: {ab['armed_at_end']}):")
+        print(f"{'':22}{'compute p50/p99/max [us]':>28}{'step p50/p99':>16}{'miss rate':>11}")
+        for key in ("on", "off"):
+            f = ab[key]
+            comp = (f"{f['compute_p50_us']:.0f}/{f['compute_p99_us']:.0f}/"
+                    f"{f['compute_max_us']:.0f}")
+            step = f"{f.get('step_p50_us', 0):.0f}/{f.get('step_p99_us', 0):.0f}"
+            print(f"{'check ' + key:22}{comp:>28}{step:>16}{100 * f['miss_rate']:>10.2f}%")
     from mmctl.runtime.driver import PHASES
 
     parts = [f"{name} {r['loop'].get(name + '_p50_us', 0):.0f}/"
