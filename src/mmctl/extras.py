@@ -13,7 +13,7 @@ from mmctl.errors import MmctlError
 
 #: extra -> the modules it provides
 EXTRAS = {"telemetry": ("rerun", "pyarrow", "datafusion"), "study": ("matplotlib",),
-          "bench": ("osqp",)}
+          "bench": ("osqp",), "ros2": ("cyclonedds",)}
 
 
 def require(extra: str, what: str) -> None:

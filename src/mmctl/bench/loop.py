@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 from mmctl.errors import MmctlError
@@ -70,6 +71,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--telemetry-aa", action="store_true",
                    help="--telemetry as an A/A check: the 'on' windows install no hook "
                         "either (the growth it prints is the comparison's own noise)")
+    p.add_argument("--ros2-ab", type=float, metavar="S",
+                   help="also time the loop with the ROS 2 bridge fed and not fed (its "
+                        "child process runs throughout; the loop's hook copies each row to "
+                        "it or not) in alternating windows of the same run, S seconds in "
+                        "all, and the child's CPU use; needs mmctl[ros2]; JSON key 'ros2'")
     p.add_argument("--collision-ab", type=float, metavar="S",
                    help="also time the loop with the self-collision check on and off "
                         "(safety.collision_check, swapped on the loop as `mmctl set` "
@@ -122,6 +128,8 @@ def run(args: argparse.Namespace) -> int:
         args.telemetry_windows = max(10, round(args.telemetry_seconds))
     if args.telemetry_windows < 1:
         raise MmctlError(f"--telemetry-windows {args.telemetry_windows}: must be >= 1")
+    if args.ros2_ab is not None and args.ros2_ab <= 0:
+        raise MmctlError(f"--ros2-ab {args.ros2_ab:g}: must be > 0 [s]")
     if args.collision_ab is not None and args.collision_ab <= 0:
         raise MmctlError(f"--collision-ab {args.collision_ab:g}: must be > 0 [s]")
     if args.cpu_dma_latency is not None and not -1 <= args.cpu_dma_latency <= MAX_US:
@@ -152,6 +160,8 @@ def bench_config(cfg: Any, args: argparse.Namespace, samples: int) -> Any:
     tmp = tempfile.mkdtemp(prefix="mmctl-bench-")
     host = args.host
     loop = cfg.loop
+    if getattr(args, "ros2_ab", None):
+        cfg = dataclasses.replace(cfg, ros2=dataclasses.replace(cfg.ros2, enabled=True))
     return dataclasses.replace(
         cfg,
         arm=dataclasses.replace(cfg.arm, host=host),
@@ -213,6 +223,8 @@ def _measure(cfg: Any, args: argparse.Namespace, n: int) -> dict[str, Any]:
         daemon.tare_and_enable(30.0)
         sim.start_human()
         time.sleep(1.0)  # warm-up
+        if args.ros2_ab:
+            result["ros2"] = _ros2_ab(daemon, args.ros2_ab, max(4, round(args.ros2_ab / 2)))
         if args.collision_ab:  # first: armed from the start
             result["collision_check"] = _collision_ab(daemon, cfg, args.collision_ab,
                                                       max(4, round(args.collision_ab / 2)))
@@ -439,6 +451,52 @@ def _interleaved(daemon: Any, wait: AlternatingWait, seconds: float, windows: in
     return out[0], out[1]
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process ``pid`` so far [s] (/proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _ros2_ab(daemon: Any, seconds: float, pairs: int) -> dict[str, Any]:
+    """``pairs`` pairs of windows (``seconds`` in all): the loop feeding the ROS 2
+    bridge (its hook installed), then not (no hook; the child idles): pooled loop
+    figures of each and the child's CPU use in each [% of one CPU]."""
+    import numpy as np
+
+    from mmctl.runtime.timing import concat, cycle_rows
+
+    ros = daemon.telemetry.ros if daemon.telemetry is not None else None
+    if ros is None or ros.pid is None:
+        raise MmctlError("--ros2-ab: the daemon runs no ROS 2 bridge")
+    hook = daemon.sample_hook
+    ring = daemon.ring
+    window = seconds / (2 * pairs)
+    snaps: dict[bool, list[Any]] = {True: [], False: []}
+    cpu = {True: 0.0, False: 0.0}
+    taken0 = ros.ring.published
+    faults = daemon.safety.faults
+    try:
+        for i in range(2 * pairs):
+            on = i % 2 == 0
+            daemon.sample_hook = hook if on else None
+            time.sleep(_SETTLE)
+            c0, s0 = ring.count, _cpu_seconds(ros.pid)
+            time.sleep(window)
+            snaps[on].append(ring.snapshot(ring.count - c0))
+            cpu[on] += _cpu_seconds(ros.pid) - s0
+    finally:
+        daemon.sample_hook = hook
+    out: dict[str, Any] = {"seconds": seconds, "pairs": pairs,
+                           "faults": daemon.safety.faults - faults,
+                           "rows_taken": ros.ring.published - taken0}
+    for on in (True, False):
+        steps = np.concatenate([cycle_rows(daemon.step_ns, s) for s in snaps[on]]) / 1e3
+        fig = _figures(concat(snaps[on]), steps[steps > 0])
+        fig["bridge_cpu_percent"] = round(100.0 * cpu[on] / (pairs * window), 2)
+        out["on" if on else "off"] = fig
+    return out
+
+
 def _collision_ab(daemon: Any, cfg: Any, seconds: float, pairs: int
                   ) -> dict[str, Any]:
     """``pairs`` pairs of windows (``seconds`` in all) with the self-collision check on,
@@ -511,6 +569,23 @@ def _print_table(r: dict[str, Any]) -> None:
               f"{r['telemetry_seconds'] / t['phases']:g} s windows):")
         print(format_report(r["telemetry"]))
         print(telemetry_verdict(r["telemetry"]))
+    rab = r.get("ros2")
+    if rab:
+        print(f"\nROS 2 bridge fed vs not ({rab['pairs']} alternating pairs of "
+              f"{rab['seconds'] / (2 * rab['pairs']):g} s windows, the same run; faults "
+              f"{rab['faults']}; rows the bridge took {rab['rows_taken']}):")
+        print(f"{'':22}{'compute p50/p99/max [us]':>28}{'miss rate':>11}{'bridge CPU':>12}")
+        for key in ("on", "off"):
+            f = rab[key]
+            comp = (f"{f['compute_p50_us']:.0f}/{f['compute_p99_us']:.0f}/"
+                    f"{f['compute_max_us']:.0f}")
+            print(f"{'bridge ' + key:22}{comp:>28}{100 * f['miss_rate']:>10.2f}%"
+                  f"{f['bridge_cpu_percent']:>11.1f}%")
+        p99_on, p99_off = rab["on"]["compute_p99_us"], rab["off"]["compute_p99_us"]
+        if p99_off > 0:
+            growth = 100.0 * (p99_on / p99_off - 1.0)
+            print(f"target: the loop's compute p99 grows < 10 % with the bridge fed: "
+                  f"{growth:+.1f} %, {'met' if growth < 10.0 else 'NOT met'}")
     ab = r.get("collision_check")
     if ab:
         print(f"\nself-collision check on vs off ({ab['pairs']} alternating pairs of "

@@ -22,6 +22,7 @@ from mmctl.config.runtime import (
     DaemonConfig,
     EnablingConfig,
     LoopConfig,
+    Ros2Config,
     SafetyConfig,
     SimConfig,
     TelemetryConfig,
@@ -53,6 +54,7 @@ class Config:
     daemon: DaemonConfig = sub(DaemonConfig)
     enabling: EnablingConfig = sub(EnablingConfig)
     telemetry: TelemetryConfig = sub(TelemetryConfig)
+    ros2: Ros2Config = sub(Ros2Config)
     sim: SimConfig = sub(SimConfig)
     name: str = param("mmctl", doc="a label for logs and recordings")
 

@@ -227,6 +227,32 @@ class TelemetryConfig:
 
 
 @section
+class Ros2Config:
+    """The ROS 2 bridge (the `mmctl[ros2]` extra; off by default): joint states, TF,
+    wrenches, diagnostics and the robot description on DDS, for RViz, `ros2 bag` and a
+    lab's other nodes.  Read-only by default; it never arms the robot."""
+
+    enabled: bool = param(False, doc="run the bridge (a child process, off the loop's CPUs)")
+    domain_id: int = param(0, ge=0, le=232, doc="the ROS_DOMAIN_ID the bridge joins",
+                           why="ROS 2's domain ids, 0-232 (DDS ports beyond are invalid)")
+    topic_prefix: str = param(
+        "", doc="a namespace before every topic ('' = none: /joint_states, /tf, ...; "
+        "'robot1': /robot1/joint_states, ...)")
+    rate: float = param(100.0, unit="Hz", ge=1.0, le=500.0,
+                        doc="joint states, TF, wrenches and the desired twist",
+                        why="at most the loop's rate; below 1 Hz RViz shows no motion")
+    diagnostics_rate: float = param(1.0, unit="Hz", ge=0.1, le=10.0,
+                                    doc="/diagnostics, as ros2_control's own",
+                                    why="a diagnostic aggregator expects about 1 Hz")
+    discovery_range: Literal["localhost", "subnet"] = param(
+        "localhost", doc="who discovers the bridge: this machine only (DDS on the "
+        "loopback interface), or the lab's subnet (ROS_AUTOMATIC_DISCOVERY_RANGE)")
+    commands: bool = param(
+        False, doc="accept `mmctl/mode` and `mmctl/profile` requests from ROS (never "
+        "enable, never a motion command)")
+
+
+@section
 class SimConfig:
     """The simulated robot (`mmctl sim`, its own process) that `mmctl run` drives when
     no hardware is configured."""

@@ -87,6 +87,20 @@ def arm_joint_origins() -> list[pin.SE3]:
     return [pin.SE3.Identity()] + [dh_transform(i) for i in range(5)]
 
 
+def fixed_joints(cfg: Config) -> list[tuple[str, str, str, pin.SE3]]:
+    """The robot's fixed joints (name, parent link, child link, origin): the arm's base
+    on the mobile base, then the flange, the sensor and the handle after the wrist."""
+    robot = cfg.robot
+    return [
+        ("ur_base_joint", "base_link", "ur_base", RobotModel(robot).mount),
+        ("flange_joint", "wrist_3_link", "flange", dh_transform(5)),
+        ("sensor_joint", "flange", "sensor",
+         pin.SE3(sensor_rotation(robot), np.asarray(robot.sensor_offset, dtype=float))),
+        ("handle_joint", "flange", "handle",
+         pin.SE3(np.eye(3), np.asarray(robot.tool_offset, dtype=float))),
+    ]
+
+
 def urdf(cfg: Config, base: str = "fixed", name: str = "mmctl_mobile_manipulator",
          collision: bool = True) -> str:
     """The robot of ``cfg`` as URDF text (see the module docstring); ``collision``
@@ -157,14 +171,8 @@ def urdf(cfg: Config, base: str = "fixed", name: str = "mmctl_mobile_manipulator
                  f'effort="{_num(UR10E_EFFORT[i])}" velocity="{_num(lim.joint_velocity[i])}"/>')
         joint(f"{JOINT_NAMES[i]}_joint", "revolute", parent, child, origin, limit=limit)
         parent = child
-    flange = dh_transform(5)
-    link("flange")
-    joint("flange_joint", "fixed", "wrist_3_link", "flange", flange)
-    link("sensor")
-    joint("sensor_joint", "fixed", "flange", "sensor",
-          pin.SE3(sensor_rotation(robot), np.asarray(robot.sensor_offset, dtype=float)))
-    link("handle")
-    joint("handle_joint", "fixed", "flange", "handle",
-          pin.SE3(np.eye(3), np.asarray(robot.tool_offset, dtype=float)))
+    for jname, jparent, jchild, origin in fixed_joints(cfg)[1:]:
+        link(jchild)
+        joint(jname, "fixed", jparent, jchild, origin)
     out.append("</robot>\n")
     return "\n".join(out)

@@ -262,7 +262,7 @@ class Daemon:
         gc.freeze()  # start-up objects (models, fakes) out of every later collection
         self.runtime.t0_ns = time.perf_counter_ns()
         if self.telemetry is not None:
-            self.telemetry.start(ring=self.ring)
+            self.telemetry.start(ring=self.ring, origin_ns=self.runtime.t0_ns)
             self.runtime.sample_hook = self.telemetry.hook(self.core)
         self.loop.start()
         if self.server is not None:

@@ -16,6 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 Vec = NDArray[np.float64]
+_NAN6 = np.full(6, math.nan)
+_NAN6.setflags(write=False)
 
 
 class TelemetrySample(NamedTuple):
@@ -39,7 +41,8 @@ class TelemetrySample(NamedTuple):
     limit: the limit that bound the command (:data:`~mmctl.control.limits.LIMIT_NAMES`,
     "" none); limit_scale: the scale the limits applied to the IDK's command (1: free);
     nearest: the distance of the robot's two nearest parts [m] (the self-collision
-    check's; NaN when it did not run).
+    check's; NaN when it did not run); qd_a: (6,) measured arm joint velocities [rad/s]
+    (NaN: not known).
     """
 
     cycle: int
@@ -60,6 +63,8 @@ class TelemetrySample(NamedTuple):
     limit: str = ""
     limit_scale: float = 1.0
     nearest: float = math.nan
+    qd_a: Vec = _NAN6
+
 
 
 def zero_sample(cycle: int = 0, t: float = 0.0) -> TelemetrySample:

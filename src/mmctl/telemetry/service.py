@@ -28,6 +28,7 @@ from mmctl.telemetry.rerun_sink import Destinations
 from mmctl.telemetry.trial import TrialTracker
 
 if TYPE_CHECKING:
+    from mmctl.ros2.process import Ros2Process
     from mmctl.runtime.timing import TimingRing
     from mmctl.telemetry.process_publisher import ProcessPublisher
     from mmctl.telemetry.publisher import Publisher
@@ -75,6 +76,7 @@ class TelemetryService:
         self.cfg = cfg
         self.destinations = destinations if destinations is not None else Destinations()
         self.publisher: Publisher | ProcessPublisher | None = None
+        self.ros: Ros2Process | None = None  #: the ROS 2 bridge (``ros2.enabled``)
         self.tracker = TrialTracker(1.0 / cfg.loop.rate_hz, on_event=self._post)
 
     @property
@@ -82,12 +84,15 @@ class TelemetryService:
         """True when samples go to rerun."""
         return self.destinations.any
 
-    def start(self, ring: TimingRing | None = None) -> None:
+    def start(self, ring: TimingRing | None = None, origin_ns: int | None = None) -> None:
         """Open the destinations and start the publisher (no-op when disabled).
 
         ring: the loop's TimingRing (loop timing in the rows; the thread publisher's
-        pacing).
+        pacing); origin_ns: the loop's origin (``time.perf_counter_ns``), for the ROS 2
+        bridge's wall-clock stamps (None: now).
         """
+        if self.cfg.ros2.enabled and self.ros is None:
+            self._start_ros(ring, origin_ns)
         if not self.enabled or self.publisher is not None:
             return
         from mmctl.extras import require
@@ -125,6 +130,21 @@ class TelemetryService:
         log.info("telemetry_started", viewer=self.destinations.viewer,
                  connect=self.destinations.connect, record=self.destinations.record)
 
+    def _start_ros(self, ring: TimingRing | None, origin_ns: int | None) -> None:
+        import time
+
+        from mmctl.extras import require
+
+        require("ros2", "the ROS 2 bridge (ros2.enabled)")
+        from mmctl.ros2.process import Ros2Process
+
+        now = time.perf_counter_ns()
+        origin_wall = time.time() - (now - (now if origin_ns is None else origin_ns)) * 1e-9
+        ros = Ros2Process(self.cfg, timing=ring, avoid_cpus=tuple(self.cfg.loop.cpu_affinity),
+                          origin_wall=origin_wall)
+        ros.start()
+        self.ros = ros
+
     def hook(self, core: RowFiller) -> Hook | None:
         """The per-cycle callable for the loop, ``hook(result, cycle, t, safety)``
         (None: no telemetry work at all).
@@ -136,6 +156,8 @@ class TelemetryService:
         pub, tracker = self.publisher, self.tracker
         fill, observe = core.fill_row, tracker.observe_row
         scratch = np.full(ring.WIDTH, np.nan)
+        if self.ros is not None and self.ros.ring is not None:
+            return self._hook_with_ros(core, self.ros.ring)
         if pub is None:
             if not tracker.active:
                 return None
@@ -163,6 +185,33 @@ class TelemetryService:
             commit()
 
         return both
+
+    def _hook_with_ros(self, core: RowFiller, ros: ring.SampleRing) -> Hook:
+        """The hook with the ROS 2 bridge on: the row goes to the bridge's ring, and a
+        copy to the publisher's (when there is one; a full ring drops and counts)."""
+        pub, tracker = self.publisher, self.tracker
+        fill, observe = core.fill_row, tracker.observe_row
+        scratch = np.full(ring.WIDTH, np.nan)
+        timing = ros.timing
+        claim, commit = ros.claim, ros.commit
+        other = pub.ring if pub is not None else None
+        if pub is not None and other is None:
+            raise MmctlError("the telemetry publisher is not started")
+
+        def with_ros(r: CycleResult, cycle: int, t: float, safety: str) -> None:
+            row = claim()
+            target = scratch if row is None else row
+            fill(r, cycle, t, safety, timing.newest, target)
+            if row is not None:
+                commit()
+            if other is not None:
+                copy = other.claim()
+                if copy is not None:
+                    copy[:] = target
+                    other.commit()
+            observe(target)  # (a no-op without a trial)
+
+        return with_ros
 
     def command(self, req: Mapping[str, Any], on_loop: OnLoop,
                 install: Callable[[Hook | None], None], core: RowFiller) -> dict[str, Any]:
@@ -196,10 +245,18 @@ class TelemetryService:
         if self.publisher is not None:
             out.update(self.publisher.stats())
             out["record"] = self.destinations.record
+        if self.ros is not None:
+            out["ros2"] = self.ros.stats()
         return out
 
     def close(self) -> None:
         """Flush and close the publisher (idempotent); a publisher error is logged."""
+        ros, self.ros = self.ros, None
+        if ros is not None:
+            try:
+                ros.close()
+            except Exception as exc:  # noqa: BLE001 -- the bridge must not break shutdown
+                log.error("ros2_close_failed", error=repr(exc))
         pub, self.publisher = self.publisher, None
         if pub is None:
             return
