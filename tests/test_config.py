@@ -395,3 +395,18 @@ def test_without_a_config_commands_use_the_installed_simulation(
     assert load(None).sim.enabled
     (tmp_path / "empty.yaml").write_text("{}\n")
     assert not load(str(tmp_path / "empty.yaml")).sim.enabled
+
+
+def test_the_ros2_section_names_a_bad_namespace_and_domain() -> None:
+    from mmctl.ros2.bridge import topic_name
+
+    cfg = config_from_dict({"ros2": {"topic_prefix": "/robot1/", "domain_id": 7}})
+    assert (cfg.ros2.topic_prefix, cfg.ros2.domain_id, cfg.ros2.enabled) == ("/robot1/", 7, False)
+    assert topic_name(cfg.ros2.topic_prefix, "/joint_states") == "/robot1/joint_states"
+    assert topic_name("", "mmctl/wrench/human") == "/mmctl/wrench/human"
+    with pytest.raises(ConfigError, match=r"ros2.topic_prefix = 'robot-1': must be a ROS 2 "):
+        config_from_dict({"ros2": {"topic_prefix": "robot-1"}})
+    with pytest.raises(ConfigError, match=r"ros2.domain_id = 233: must be >= 0 and <= 232"):
+        config_from_dict({"ros2": {"domain_id": 233}})
+    with pytest.raises(ConfigError, match=r"ros2.discovery_range = 'lan'"):
+        config_from_dict({"ros2": {"discovery_range": "lan"}})

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from typing import Literal
 
 from mmctl.config.schema import param, section
@@ -230,7 +231,8 @@ class TelemetryConfig:
 class Ros2Config:
     """The ROS 2 bridge (the `mmctl[ros2]` extra; off by default): joint states, TF,
     wrenches, diagnostics and the robot description on DDS, for RViz, `ros2 bag` and a
-    lab's other nodes.  Read-only by default; it never arms the robot."""
+    lab's other nodes.  Read-only: it subscribes to nothing, so it never commands or arms
+    the robot."""
 
     enabled: bool = param(False, doc="run the bridge (a child process, off the loop's CPUs)")
     domain_id: int = param(0, ge=0, le=232, doc="the ROS_DOMAIN_ID the bridge joins",
@@ -244,12 +246,17 @@ class Ros2Config:
     diagnostics_rate: float = param(1.0, unit="Hz", ge=0.1, le=10.0,
                                     doc="/diagnostics, as ros2_control's own",
                                     why="a diagnostic aggregator expects about 1 Hz")
+
+    def validate(self, path: str, source: str | None) -> None:
+        key = f"{path}.topic_prefix" if path else "topic_prefix"
+        words = [w for w in self.topic_prefix.strip("/").split("/") if w]
+        if any(not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", w) for w in words):
+            raise ConfigError(key, self.topic_prefix,
+                              "must be a ROS 2 namespace: words of letters, digits and _ "
+                              "(each starting with a letter), separated by /", source)
     discovery_range: Literal["localhost", "subnet"] = param(
         "localhost", doc="who discovers the bridge: this machine only (DDS on the "
         "loopback interface), or the lab's subnet (ROS_AUTOMATIC_DISCOVERY_RANGE)")
-    commands: bool = param(
-        False, doc="accept `mmctl/mode` and `mmctl/profile` requests from ROS (never "
-        "enable, never a motion command)")
 
 
 @section
