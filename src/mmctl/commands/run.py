@@ -36,6 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", metavar="ADDR",
                    help="telemetry: stream to a running rerun viewer (HOST:PORT or URL)")
     p.add_argument("--record", metavar="FILE", help="telemetry: save a .rrd recording")
+    p.add_argument("--ros2", action="store_true",
+                   help="publish the robot to ROS 2 (ros2.enabled; the mmctl[ros2] extra; "
+                        "docs/ros2.md)")
     p.add_argument("--record-inputs", metavar="DIR",
                    help="write every cycle's readings, operator commands and the update's "
                         "commands to the new folder DIR (for `mmctl replay DIR`; about 1 GB "
@@ -64,6 +67,13 @@ def _run(args: argparse.Namespace) -> int:
     from mmctl.runtime.logging import setup_logging
 
     cfg = load(args.config)
+    if args.ros2:
+        import dataclasses
+
+        from mmctl.extras import require
+
+        require("ros2", "--ros2")
+        cfg = dataclasses.replace(cfg, ros2=dataclasses.replace(cfg.ros2, enabled=True))
     setup_logging(args.log_level or cfg.daemon.log_level, json=True if args.log_json else None)
     socket_path = Path(args.socket) if args.socket else resolve_socket_path(cfg.daemon.socket_path)
     from mmctl.telemetry.service import TelemetryService, destinations_from
