@@ -16,7 +16,7 @@ Push the simulated handle yourself from another terminal: `mmctl sim push 30 0 0
 from __future__ import annotations
 
 import argparse
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from mmctl.runtime.daemon import Daemon
@@ -73,7 +73,8 @@ def _run(args: argparse.Namespace) -> int:
         from mmctl.extras import require
 
         require("ros2", "--ros2")
-        cfg = dataclasses.replace(cfg, ros2=dataclasses.replace(cfg.ros2, enabled=True))
+        plain: Any = cfg  # (a config section is a dataclass mypy does not see as one)
+        cfg = dataclasses.replace(plain, ros2=dataclasses.replace(plain.ros2, enabled=True))
     setup_logging(args.log_level or cfg.daemon.log_level, json=True if args.log_json else None)
     socket_path = Path(args.socket) if args.socket else resolve_socket_path(cfg.daemon.socket_path)
     from mmctl.telemetry.service import TelemetryService, destinations_from
