@@ -29,7 +29,7 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
     rc = main(["bench", "loop", "--seconds", "1", "--json", "--telemetry", "--config", str(path),
                "--host", loopback_host, "--cpu-dma-latency", "1500", "--telemetry-seconds", "2",
                "--telemetry-windows", "5", "--latency-steps", "4" if process else "0",
-               *([] if process else ["--collision-ab", "4"])])
+               *(["--ros2-ab", "2"] if process else ["--collision-ab", "4"])])
     out, err = capsys.readouterr()
     assert rc == 0, err[-3000:]
     rep = json.loads(out)
@@ -88,8 +88,12 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
         assert ab["pairs"] == 4 and ab["seconds"] == 4.0 and ab["faults"] >= 0
         for key in ("on", "off"):
             assert KEYS <= set(ab[key]) and ab[key]["cycles"] > 10, key
-    else:
+    else:  # the ROS 2 bridge fed and not (its child on loopback only), 4 pairs of 0.25 s
         assert "collision_check" not in rep
+        ros = rep["ros2"]
+        assert ros["pairs"] == 4 and ros["faults"] >= 0 and ros["rows_taken"] > 0
+        for key in ("on", "off"):
+            assert KEYS <= set(ros[key]) and ros[key]["bridge_cpu_percent"] >= 0.0, key
 
 
 def test_a_fault_during_the_run_is_flagged() -> None:

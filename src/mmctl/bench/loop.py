@@ -22,7 +22,7 @@ import os
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -457,88 +457,94 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _ros2_ab(daemon: Any, seconds: float, pairs: int) -> dict[str, Any]:
-    """``pairs`` pairs of windows (``seconds`` in all): the loop feeding the ROS 2
-    bridge (its hook installed), then not (no hook; the child idles): pooled loop
-    figures of each and the child's CPU use in each [% of one CPU]."""
+def _alternate(daemon: Any, seconds: float, pairs: int, switch: Callable[[bool], None],
+               probe: Callable[[], float] | None = None) -> dict[str, Any]:
+    """``pairs`` pairs of windows (``seconds`` in all), condition "on" then "off"
+    (``switch(on)`` sets it; the first cycles after it, ``_SETTLE``, not counted):
+    pooled loop figures of each, with ``probe``'s growth over each condition's windows
+    (e.g. a process's CPU seconds) under ``probe``."""
     import numpy as np
 
     from mmctl.runtime.timing import concat, cycle_rows
 
-    ros = daemon.telemetry.ros if daemon.telemetry is not None else None
-    if ros is None or ros.pid is None:
-        raise MmctlError("--ros2-ab: the daemon runs no ROS 2 bridge")
-    hook = daemon.sample_hook
     ring = daemon.ring
     window = seconds / (2 * pairs)
     snaps: dict[bool, list[Any]] = {True: [], False: []}
-    cpu = {True: 0.0, False: 0.0}
-    taken0 = ros.ring.published
+    grown = {True: 0.0, False: 0.0}
     faults = daemon.safety.faults
-    try:
-        for i in range(2 * pairs):
-            on = i % 2 == 0
-            daemon.sample_hook = hook if on else None
-            time.sleep(_SETTLE)
-            c0, s0 = ring.count, _cpu_seconds(ros.pid)
-            time.sleep(window)
-            snaps[on].append(ring.snapshot(ring.count - c0))
-            cpu[on] += _cpu_seconds(ros.pid) - s0
-    finally:
-        daemon.sample_hook = hook
-    out: dict[str, Any] = {"seconds": seconds, "pairs": pairs,
-                           "faults": daemon.safety.faults - faults,
-                           "rows_taken": ros.ring.published - taken0}
-    for on in (True, False):
-        steps = np.concatenate([cycle_rows(daemon.step_ns, s) for s in snaps[on]]) / 1e3
-        fig = _figures(concat(snaps[on]), steps[steps > 0])
-        fig["bridge_cpu_percent"] = round(100.0 * cpu[on] / (pairs * window), 2)
-        out["on" if on else "off"] = fig
-    return out
-
-
-def _collision_ab(daemon: Any, cfg: Any, seconds: float, pairs: int
-                  ) -> dict[str, Any]:
-    """``pairs`` pairs of windows (``seconds`` in all) with the self-collision check on,
-    then off: the controller swapped on the loop between them (as `mmctl set` does: the
-    state carries over), the simulated person pushing throughout.  Pooled figures of
-    each (the first cycles after a swap not counted), and the daemon's configuration
-    back at the end."""
-    import dataclasses
-
-    import numpy as np
-
-    from mmctl.control.step import Controller
-    from mmctl.control.update import Install
-    from mmctl.model.robot import RobotModel
-    from mmctl.runtime.timing import concat, cycle_rows
-
-    key = "safety.collision_check"
-    configs = {on: dataclasses.replace(cfg, safety=dataclasses.replace(
-        cfg.safety, collision_check=on)) for on in (True, False)}
-    controllers = {on: Controller(c, RobotModel(c.robot)) for on, c in configs.items()}
-    ring = daemon.ring
-    window = seconds / (2 * pairs)
-    snaps: dict[bool, list[Any]] = {True: [], False: []}
-    faults = daemon.safety.faults
-    try:
-        for i in range(2 * pairs):
-            on = i % 2 == 0
-            daemon.runtime.on_loop(Install(configs[on], controllers[on], key))
-            time.sleep(_SETTLE)
-            c0 = ring.count
-            time.sleep(window)
-            snaps[on].append(ring.snapshot(ring.count - c0))
-    finally:
-        original = configs[bool(cfg.safety.collision_check)]
-        daemon.runtime.on_loop(Install(original, Controller(original, RobotModel(original.robot)), key))
+    for i in range(2 * pairs):
+        on = i % 2 == 0
+        switch(on)
+        time.sleep(_SETTLE)
+        c0, p0 = ring.count, probe() if probe is not None else 0.0
+        time.sleep(window)
+        snaps[on].append(ring.snapshot(ring.count - c0))
+        if probe is not None:
+            grown[on] += probe() - p0
     out: dict[str, Any] = {"seconds": seconds, "pairs": pairs,
                            "faults": daemon.safety.faults - faults,
                            "armed_at_end": daemon.safety.armed}
     for on in (True, False):
         steps = np.concatenate([cycle_rows(daemon.step_ns, s) for s in snaps[on]]) / 1e3
-        out["on" if on else "off"] = _figures(concat(snaps[on]), steps[steps > 0])
+        fig = _figures(concat(snaps[on]), steps[steps > 0])
+        fig["probe_per_s"] = grown[on] / (pairs * window)
+        out["on" if on else "off"] = fig
     return out
+
+
+def _ros2_ab(daemon: Any, seconds: float, pairs: int) -> dict[str, Any]:
+    """The loop feeding the ROS 2 bridge (its hook installed) vs not (no hook; the child
+    idles), in alternating windows: each condition's loop figures and the child's CPU
+    use [% of one CPU]."""
+    ros = daemon.telemetry.ros if daemon.telemetry is not None else None
+    if ros is None or ros.pid is None or ros.ring is None:
+        raise MmctlError("--ros2-ab: the daemon runs no ROS 2 bridge")
+    hook = daemon.sample_hook
+    taken = ros.ring.published
+
+    def feed(on: bool) -> None:
+        daemon.sample_hook = hook if on else None
+
+    try:
+        out = _alternate(daemon, seconds, pairs, feed, lambda: _cpu_seconds(ros.pid))
+    finally:
+        daemon.sample_hook = hook
+    out["rows_taken"] = ros.ring.published - taken
+    for key in ("on", "off"):
+        out[key]["bridge_cpu_percent"] = round(100.0 * out[key].pop("probe_per_s"), 2)
+    return out
+
+
+def _collision_ab(daemon: Any, cfg: Any, seconds: float, pairs: int) -> dict[str, Any]:
+    """The self-collision check on vs off in alternating windows, the controller swapped
+    on the loop between them (as `mmctl set` does: the state carries over), the
+    simulated person pushing throughout; the daemon's configuration back at the end."""
+    import dataclasses
+
+    from mmctl.control.step import Controller
+    from mmctl.control.update import Install
+    from mmctl.model.robot import RobotModel
+
+    key = "safety.collision_check"
+    configs = {on: dataclasses.replace(cfg, safety=dataclasses.replace(
+        cfg.safety, collision_check=on)) for on in (True, False)}
+    controllers = {on: Controller(c, RobotModel(c.robot)) for on, c in configs.items()}
+
+    def check(on: bool) -> None:
+        daemon.runtime.on_loop(Install(configs[on], controllers[on], key))
+
+    try:
+        out = _alternate(daemon, seconds, pairs, check)
+    finally:
+        original = configs[bool(cfg.safety.collision_check)]
+        daemon.runtime.on_loop(Install(original, Controller(original, RobotModel(original.robot)), key))
+    for k in ("on", "off"):
+        out[k].pop("probe_per_s")
+    return out
+
+
+def _compute(f: dict[str, Any]) -> str:
+    return f"{f['compute_p50_us']:.0f}/{f['compute_p99_us']:.0f}/{f['compute_max_us']:.0f}"
 
 
 _SETTLE = 0.05
@@ -577,9 +583,7 @@ def _print_table(r: dict[str, Any]) -> None:
         print(f"{'':22}{'compute p50/p99/max [us]':>28}{'miss rate':>11}{'bridge CPU':>12}")
         for key in ("on", "off"):
             f = rab[key]
-            comp = (f"{f['compute_p50_us']:.0f}/{f['compute_p99_us']:.0f}/"
-                    f"{f['compute_max_us']:.0f}")
-            print(f"{'bridge ' + key:22}{comp:>28}{100 * f['miss_rate']:>10.2f}%"
+            print(f"{'bridge ' + key:22}{_compute(f):>28}{100 * f['miss_rate']:>10.2f}%"
                   f"{f['bridge_cpu_percent']:>11.1f}%")
         p99_on, p99_off = rab["on"]["compute_p99_us"], rab["off"]["compute_p99_us"]
         if p99_off > 0:
@@ -594,10 +598,8 @@ def _print_table(r: dict[str, Any]) -> None:
         print(f"{'':22}{'compute p50/p99/max [us]':>28}{'step p50/p99':>16}{'miss rate':>11}")
         for key in ("on", "off"):
             f = ab[key]
-            comp = (f"{f['compute_p50_us']:.0f}/{f['compute_p99_us']:.0f}/"
-                    f"{f['compute_max_us']:.0f}")
             step = f"{f.get('step_p50_us', 0):.0f}/{f.get('step_p99_us', 0):.0f}"
-            print(f"{'check ' + key:22}{comp:>28}{step:>16}{100 * f['miss_rate']:>10.2f}%")
+            print(f"{'check ' + key:22}{_compute(f):>28}{step:>16}{100 * f['miss_rate']:>10.2f}%")
     from mmctl.runtime.driver import PHASES
 
     parts = [f"{name} {r['loop'].get(name + '_p50_us', 0):.0f}/"
