@@ -64,7 +64,7 @@ def _listen(seconds: float, status: Any) -> dict[str, Any]:
                          durability=DurabilityPolicy.TRANSIENT_LOCAL,
                          history=HistoryPolicy.KEEP_LAST)
     got: dict[str, Any] = {"joint_states": [], "latency_ms": [], "description": None,
-                           "wrench": None, "twist": None, "diagnostics": None}
+                           "wrench": None, "raw": None, "twist": None, "diagnostics": None}
 
     def on_joints(msg: JointState) -> None:
         now = time.time()
@@ -94,16 +94,33 @@ def _listen(seconds: float, status: Any) -> dict[str, Any]:
 
     node.create_subscription(JointState, "/joint_states", on_joints, 50)
     node.create_subscription(WrenchStamped, "/mmctl/wrench/human", on_wrench, 10)
+
+    def on_raw(msg: WrenchStamped) -> None:
+        f, tq = msg.wrench.force, msg.wrench.torque
+        got["raw"] = {"frame": msg.header.frame_id, "force": [f.x, f.y, f.z],
+                      "torque": [tq.x, tq.y, tq.z]}
+
+    node.create_subscription(WrenchStamped, "/mmctl/wrench/raw", on_raw, 10)
     node.create_subscription(TwistStamped, "/mmctl/twist/desired", on_twist, 10)
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
     node.create_subscription(String, "/robot_description", on_description, latched)
-    end = time.monotonic() + seconds
-    while time.monotonic() < end or got["description"] is None and time.monotonic() < end + 10:
+    # at least ``seconds``, and until every topic has spoken and 20 joint states came: on
+    # a busy machine the bridge (background work: SCHED_IDLE) gets little CPU, so this
+    # waits for counts, not times (at most 5 minutes)
+    start = time.monotonic()
+    end = start + seconds
+
+    def heard() -> bool:
+        return (len(got["joint_states"]) >= 20
+                and all(got[k] is not None for k in ("description", "wrench", "raw", "twist",
+                                                     "diagnostics")))
+
+    while time.monotonic() < end or not heard() and time.monotonic() < start + 300:
         rclpy.spin_once(node, timeout_sec=0.05)
     # the same moment: a status, then the next joint state (the robot is at rest)
     st = status()
     n = len(got["joint_states"])
-    while len(got["joint_states"]) == n and time.monotonic() < end + 20:
+    while len(got["joint_states"]) == n and time.monotonic() < start + 360:
         rclpy.spin_once(node, timeout_sec=0.05)
     graph = {name: types for name, types in node.get_topic_names_and_types()}
     node.destroy_node()

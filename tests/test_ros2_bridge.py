@@ -35,6 +35,7 @@ PROBE = Path(__file__).with_name("ros2_probe.py")
 TOPICS = {"/joint_states": "sensor_msgs/msg/JointState", "/tf": "tf2_msgs/msg/TFMessage",
           "/tf_static": "tf2_msgs/msg/TFMessage", "/robot_description": "std_msgs/msg/String",
           "/mmctl/wrench/human": "geometry_msgs/msg/WrenchStamped",
+          "/mmctl/wrench/raw": "geometry_msgs/msg/WrenchStamped",
           "/mmctl/twist/desired": "geometry_msgs/msg/TwistStamped",
           "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray"}
 
@@ -118,6 +119,8 @@ def test_a_real_rclpy_node_sees_the_robot(tmp_path: Path) -> None:
     f_h = np.asarray(st["robot"]["f_h"], dtype=float)
     assert r["wrench"]["frame"] == "handle" and r["twist"]["frame"] == "handle"
     np.testing.assert_allclose(r["wrench"]["force"], rot.T @ f_h[:3], atol=0.5)
+    # the raw wrench in the sensor's frame: the handle's weight, before the tare (> 5 N)
+    assert r["raw"]["frame"] == "sensor" and np.linalg.norm(r["raw"]["force"]) > 5.0
 
     # diagnostics: the state and the mode, and the loop's timing
     (diag,) = r["diagnostics"]

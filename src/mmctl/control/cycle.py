@@ -68,6 +68,9 @@ class CycleResult(NamedTuple):
     taring: bool
     out: StepOutputs | None
     v: Vec = _Z6
+    f_raw: Vec = _Z6
+    """(6,) the sensor's raw wrench this cycle read, in the sensor frame [N, N m] (the ROS
+    2 bridge's ``mmctl/wrench/raw``)."""
 
 
 class CycleState(NamedTuple):
@@ -125,6 +128,12 @@ class CycleChain:
     def cycle(self, state: CycleState, r: Readings, now: float) -> tuple[CycleState, CycleResult]:
         """One cycle: ``now`` is the time [s] on the clock of the readings' timestamps
         (``time.monotonic`` on the robot); staleness is judged against it."""
+        state, result = self._cycle(state, r, now)
+        w = r.wrench
+        return state, result._replace(f_raw=np.concatenate((w.force, w.torque)))
+
+    def _cycle(self, state: CycleState, r: Readings, now: float
+               ) -> tuple[CycleState, CycleResult]:
         q = np.empty(9)
         q[:6] = r.arm.q
         q[6], q[7], q[8] = r.odom.x, r.odom.y, r.odom.yaw

@@ -14,6 +14,7 @@ topic                    type                                what
                                                              handle`` (transient local)
 ``/robot_description``   ``std_msgs/msg/String``             the URDF (`mmctl model urdf`;
                                                              transient local)
+``mmctl/wrench/raw``     ``geometry_msgs/msg/WrenchStamped`` the sensor's raw wrench, ``sensor``
 ``mmctl/wrench/human``   ``geometry_msgs/msg/WrenchStamped`` the human wrench f_h, ``handle`` frame
 ``mmctl/twist/desired``  ``geometry_msgs/msg/TwistStamped``  the admittance's twist v_d, ``handle``
 ``/diagnostics``         ``diagnostic_msgs/msg/DiagnosticArray`` state, mode, limit, E_K, the loop
@@ -101,6 +102,7 @@ class Ros2Bridge:
 
         self.topics = {"/joint_states": m.JointState, "/tf": m.TFMessage,
                        "/tf_static": m.TFMessage, "/robot_description": m.String,
+                       "mmctl/wrench/raw": m.WrenchStamped,
                        "mmctl/wrench/human": m.WrenchStamped,
                        "mmctl/twist/desired": m.TwistStamped,
                        "/diagnostics": m.DiagnosticArray}
@@ -108,6 +110,7 @@ class Ros2Bridge:
         self._tf = writer("/tf", m.TFMessage, tf)
         self._tf_static = writer("/tf_static", m.TFMessage, latched)
         self._description = writer("/robot_description", m.String, latched)
+        self._raw = writer("mmctl/wrench/raw", m.WrenchStamped, state)
         self._wrench = writer("mmctl/wrench/human", m.WrenchStamped, state)
         self._twist = writer("mmctl/twist/desired", m.TwistStamped, state)
         self._diagnostics = writer("/diagnostics", m.DiagnosticArray, state)
@@ -159,6 +162,9 @@ class Ros2Bridge:
         f = rot.T @ np.asarray(row[tr.F_H][:3]), rot.T @ np.asarray(row[tr.F_H][3:])
         self._wrench.write(m.WrenchStamped(handle, m.Wrench(
             m.Vector3(*map(float, f[0])), m.Vector3(*map(float, f[1])))))
+        raw = [float(x) for x in row[tr.F_RAW]]
+        self._raw.write(m.WrenchStamped(m.Header(self._stamp(t), "sensor"), m.Wrench(
+            m.Vector3(*raw[:3]), m.Vector3(*raw[3:]))))
         v = rot.T @ np.asarray(row[tr.V_D][:3]), rot.T @ np.asarray(row[tr.V_D][3:])
         self._twist.write(m.TwistStamped(handle, m.Twist(
             m.Vector3(*map(float, v[0])), m.Vector3(*map(float, v[1])))))

@@ -170,5 +170,5 @@ class ControlCore:
         near = out.body[1] if out is not None and out.body is not None else math.nan
         np.concatenate(((cycle, t, tr.mode_code(mode), tr.safety_code(safety), *prev), q,
                         r.f_h, r.v_d, v, r.qd_cmd, (e.total, e.arm, e.base), r.p, r.p_des,
-                        limit, (near,), r.qd[:6]), out=row)
+                        limit, (near,), r.qd[:6], r.f_raw), out=row)
 

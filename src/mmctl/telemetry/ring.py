@@ -62,7 +62,8 @@ LIMIT = 53  #: the limit that bound the command (code in :data:`LIMITS`)
 LIMIT_SCALE = 54  #: the scale the limits applied to the IDK's command (1: free)
 NEAREST = 55  #: the robot's two nearest parts' distance [m] (NaN: not checked)
 QD_A = slice(56, 62)  #: measured arm joint velocities [rad/s] (the ROS 2 joint states)
-WIDTH = 62
+F_RAW = slice(62, 68)  #: the sensor's raw wrench, sensor frame [N, N m]
+WIDTH = 68
 
 #: mode labels a row can carry (``TelemetrySample.mode``), by code
 MODES: tuple[str, ...] = tuple(
@@ -256,8 +257,8 @@ def encode(s: TelemetrySample, row: F64, prev: tuple[float, ...] = _NAN4) -> Non
                      _SAFETY_CODE.get(s.safety, -1.0), *prev),
                     s.q_a, s.base_pose, s.f_h, s.v_d, s.v, s.qd_cmd,
                     (s.e_total, s.e_arm, s.e_base), s.p, s.p_des,
-                    (_LIMIT_CODE.get(s.limit, -1.0), s.limit_scale, s.nearest), s.qd_a),
-                   out=row)
+                    (_LIMIT_CODE.get(s.limit, -1.0), s.limit_scale, s.nearest), s.qd_a,
+                    s.f_raw), out=row)
 
 
 def sample_of(row: F64) -> TelemetrySample:
@@ -270,7 +271,7 @@ def sample_of(row: F64) -> TelemetrySample:
         p=row[P].copy(), p_des=row[P_DES].copy(), mode=label(MODES, float(row[MODE])),
         safety=label(SAFETY_STATES, float(row[SAFETY])),
         limit=label(LIMITS, float(row[LIMIT])), limit_scale=float(row[LIMIT_SCALE]),
-        nearest=float(row[NEAREST]), qd_a=row[QD_A].copy())
+        nearest=float(row[NEAREST]), qd_a=row[QD_A].copy(), f_raw=row[F_RAW].copy())
 
 
 def rows_of(samples: list[TelemetrySample]) -> F64:

@@ -42,7 +42,7 @@ class TelemetrySample(NamedTuple):
     "" none); limit_scale: the scale the limits applied to the IDK's command (1: free);
     nearest: the distance of the robot's two nearest parts [m] (the self-collision
     check's; NaN when it did not run); qd_a: (6,) measured arm joint velocities [rad/s]
-    (NaN: not known).
+    (NaN: not known); f_raw: (6,) the sensor's raw wrench, sensor frame [N, N m].
     """
 
     cycle: int
@@ -64,6 +64,7 @@ class TelemetrySample(NamedTuple):
     limit_scale: float = 1.0
     nearest: float = math.nan
     qd_a: Vec = _NAN6
+    f_raw: Vec = _NAN6
 
 
 

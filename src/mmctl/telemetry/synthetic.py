@@ -42,6 +42,7 @@ def synthetic_sample(k: int, period: float = 0.002, p_des: tuple[float, float, f
         e_total=e_arm + e_base, e_arm=e_arm, e_base=e_base, p=p, p_des=p_des_w,
         mode="min-energy", safety="armed", nearest=0.1 + 0.02 * math.sin(0.4 * t),
         qd_a=0.105 * np.cos(0.7 * t + np.arange(6)),  # d/dt of q_a
+        f_raw=np.array([f[0], f[1], f[2] - 19.6, 0.0, 0.0, 0.1]),  # + a 2 kg handle
     )
 
 
