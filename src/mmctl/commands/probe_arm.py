@@ -100,15 +100,30 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _fresh_state(arm: UrRtdeArm, timeout: float = 2.0) -> ArmState:
-    """read_state until a sample arrives (the first reads may repeat the same one)."""
+    """read_state until a fresh sample arrives (the first reads may repeat the same
+    one).  Samples streamed while the control script was still starting say so
+    (``arm_not_playing``): they are waited out for ``timeout`` [s], then that fault
+    stands."""
     deadline = time.monotonic() + timeout
-    state = arm.read_state()
+    state = _playing(arm, deadline)
     while time.monotonic() < deadline:
         time.sleep(0.002)
         nxt = arm.read_state()
         if nxt.controller_time != state.controller_time:
             return nxt
     return state
+
+
+def _playing(arm: UrRtdeArm, deadline: float) -> ArmState:
+    from mmctl.errors import FaultCause, SafetyFault
+
+    while True:
+        try:
+            return arm.read_state()
+        except SafetyFault as fault:
+            if fault.cause is not FaultCause.ARM_NOT_PLAYING or time.monotonic() > deadline:
+                raise
+        time.sleep(0.01)
 
 
 def _jog(arm: UrRtdeArm, joint: int, speed: float, seconds: float) -> int:
