@@ -91,7 +91,10 @@ def test_bench_loop_json(tmp_path: Path, loopback_host: str, process: bool,
     else:  # the ROS 2 bridge fed and not (its child on loopback only), 4 pairs of 0.25 s
         assert "collision_check" not in rep
         ros = rep["ros2"]
-        assert ros["pairs"] == 4 and ros["faults"] >= 0 and ros["rows_taken"] > 0
+        # the loop fed the bridge's ring in the "on" windows; the child (SCHED_IDLE) may
+        # take none of it while both cores are busy (seen with two `yes` loops)
+        assert ros["pairs"] == 4 and ros["faults"] >= 0 and ros["rows_fed"] > 0
+        assert 0 <= ros["rows_taken"] <= ros["rows_fed"] + 4096
         for key in ("on", "off"):
             assert KEYS <= set(ros[key]) and ros[key]["bridge_cpu_percent"] >= 0.0, key
 

@@ -501,6 +501,7 @@ def _ros2_ab(daemon: Any, seconds: float, pairs: int) -> dict[str, Any]:
         raise MmctlError("--ros2-ab: the daemon runs no ROS 2 bridge")
     hook = daemon.sample_hook
     taken = ros.ring.published
+    fed = ros.ring.accepted + ros.ring.dropped
 
     def feed(on: bool) -> None:
         daemon.sample_hook = hook if on else None
@@ -509,7 +510,8 @@ def _ros2_ab(daemon: Any, seconds: float, pairs: int) -> dict[str, Any]:
         out = _alternate(daemon, seconds, pairs, feed, lambda: _cpu_seconds(ros.pid))
     finally:
         daemon.sample_hook = hook
-    out["rows_taken"] = ros.ring.published - taken
+    out["rows_taken"] = ros.ring.published - taken  # (by the child: background work)
+    out["rows_fed"] = ros.ring.accepted + ros.ring.dropped - fed  # (by the loop's hook)
     for key in ("on", "off"):
         out[key]["bridge_cpu_percent"] = round(100.0 * out[key].pop("probe_per_s"), 2)
     return out
