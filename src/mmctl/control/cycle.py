@@ -68,9 +68,9 @@ class CycleResult(NamedTuple):
     taring: bool
     out: StepOutputs | None
     v: Vec = _Z6
-    f_raw: Vec = _Z6
-    """(6,) the sensor's raw wrench this cycle read, in the sensor frame [N, N m] (the ROS
-    2 bridge's ``mmctl/wrench/raw``)."""
+    raw: Wrench | None = None
+    """The sensor reading this cycle used, raw (sensor frame; the ROS 2 bridge's
+    ``mmctl/wrench/raw``): the reading itself, so the cycle copies nothing."""
 
 
 class CycleState(NamedTuple):
@@ -129,8 +129,7 @@ class CycleChain:
         """One cycle: ``now`` is the time [s] on the clock of the readings' timestamps
         (``time.monotonic`` on the robot); staleness is judged against it."""
         state, result = self._cycle(state, r, now)
-        w = r.wrench
-        return state, result._replace(f_raw=np.concatenate((w.force, w.torque)))
+        return state, result._replace(raw=r.wrench)
 
     def _cycle(self, state: CycleState, r: Readings, now: float
                ) -> tuple[CycleState, CycleResult]:

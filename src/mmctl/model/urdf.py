@@ -20,6 +20,7 @@ model's (``tests/test_urdf.py``: 1e-9 at 1 000 random poses).
 
 from __future__ import annotations
 
+import math
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -85,6 +86,22 @@ def arm_joint_origins() -> list[pin.SE3]:
     joint turns about its z after it): ``ur_base`` for the first, then each DH step's
     constant part."""
     return [pin.SE3.Identity()] + [dh_transform(i) for i in range(5)]
+
+
+_ORIGIN_ROTATIONS = [o.rotation for o in arm_joint_origins()]
+
+
+def arm_joint_quaternions(q_a: np.ndarray) -> np.ndarray:
+    """(6, 4) (x, y, z, w): each arm joint's child link in its parent link at the arm's
+    joints ``q_a`` (6,): the URDF's origin (:func:`arm_joint_origins`) times the turn
+    about z."""
+    out = np.empty((6, 4))
+    for i, (origin, angle) in enumerate(zip(_ORIGIN_ROTATIONS, np.asarray(q_a).tolist())):
+        c, s = math.cos(angle), math.sin(angle)
+        rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        quat = pin.Quaternion(origin @ rz)
+        out[i] = (quat.x, quat.y, quat.z, quat.w)
+    return out
 
 
 def fixed_joints(cfg: Config) -> list[tuple[str, str, str, pin.SE3]]:

@@ -35,7 +35,7 @@ import pinocchio as pin
 from mmctl.config import Config
 from mmctl.model import NA, RobotModel
 from mmctl.model.ur10e import JOINT_NAMES
-from mmctl.model.urdf import arm_joint_origins, fixed_joints, link_name, urdf
+from mmctl.model.urdf import arm_joint_origins, arm_joint_quaternions, fixed_joints, link_name, urdf
 from mmctl.telemetry import ring as tr
 
 #: the UR joints' names in ROS (ur_description)
@@ -117,7 +117,6 @@ class Ros2Bridge:
         self.model = RobotModel(cfg.robot)
         self._data = self.model.arm.createData()
         self._tool = self.model.frame_id("tool")
-        self._origins = [o.rotation for o in arm_joint_origins()]
         self._origin_xyz = [o.translation.copy() for o in arm_joint_origins()]
         self._links = ["ur_base"] + [link_name(j) for j in range(1, NA + 1)]
         self.published = 0
@@ -150,11 +149,9 @@ class Ros2Bridge:
             [0.0 if not math.isfinite(x) else float(x) for x in qd_a], []))
         x, y, yaw = (float(v) for v in row[tr.BASE_POSE])
         transforms = [self._transform(t, "odom", "base_link", (x, y, 0.0), yaw_quaternion(yaw))]
-        for i, angle in enumerate(q_a.tolist()):
-            c, s = math.cos(angle), math.sin(angle)
-            rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        for i, quat in enumerate(arm_joint_quaternions(q_a).tolist()):
             transforms.append(self._transform(t, self._links[i], self._links[i + 1],
-                                              self._origin_xyz[i], _quat(self._origins[i] @ rz)))
+                                              self._origin_xyz[i], tuple(quat)))
         self._tf.write(m.TFMessage(transforms))
         pin.forwardKinematics(self.model.arm, self._data, np.asarray(q_a, dtype=float))
         rot = pin.updateFramePlacement(self.model.arm, self._data, self._tool).rotation

@@ -25,6 +25,7 @@ __all__ = ["ControlCore", "CycleResult"]
 
 _Z6 = np.zeros(6)
 _NO_LIMIT = (0.0, 1.0)  # the controller did not run: no limit, scale 1
+_NO_WRENCH = Wrench(np.full(3, math.nan), np.full(3, math.nan), 0.0, 0)  # no reading
 
 
 class ControlCore:
@@ -168,7 +169,8 @@ class ControlCore:
         out = r.out
         limit = (tr.limit_code(out.limit), out.scale) if out is not None else _NO_LIMIT
         near = out.body[1] if out is not None and out.body is not None else math.nan
+        raw = r.raw if r.raw is not None else _NO_WRENCH
         np.concatenate(((cycle, t, tr.mode_code(mode), tr.safety_code(safety), *prev), q,
                         r.f_h, r.v_d, v, r.qd_cmd, (e.total, e.arm, e.base), r.p, r.p_des,
-                        limit, (near,), r.qd[:6], r.f_raw), out=row)
+                        limit, (near,), r.qd[:6], raw.force, raw.torque), out=row)
 

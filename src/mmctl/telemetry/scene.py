@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from mmctl.config.base import MecanumConfig
 from mmctl.config.robot import RobotConfig
 from mmctl.model import NA, RobotModel
-from mmctl.model.urdf import arm_joint_origins
+from mmctl.model.urdf import arm_joint_quaternions
 from mmctl.telemetry import layout
 from mmctl.telemetry import ring as tr
 from mmctl.telemetry.batch import base_frame
@@ -79,7 +79,6 @@ class SceneBuilder:
         self._tool = self.model.frame_id("tool")
         self._flange = self.model.frame_id("flange")
         self._mount = np.asarray(robot.arm_mount, dtype=float)
-        self._origins = [o.rotation for o in arm_joint_origins()]
 
     def frame(self, s: TelemetrySample) -> SceneFrame:
         """Draw one sample (see :class:`SceneFrame`)."""
@@ -104,16 +103,5 @@ class SceneBuilder:
             twist_vector=v_d[:3] * layout.TWIST_ARROW_SCALE,
             force_vector=f_h[:3] * layout.FORCE_ARROW_SCALE,
             p_des=base_frame(tr.rows_of([s]), tr.P_DES)[0],  # as the plotted series
-            joint_quaternions=self.joint_quaternions(q_a),
+            joint_quaternions=arm_joint_quaternions(q_a),
         )
-
-    def joint_quaternions(self, q_a: F64) -> F64:
-        """(6, 4) (x, y, z, w): each arm joint's child link in its parent link at the
-        arm's joints ``q_a`` (6,): the URDF's origin times the turn about z."""
-        out = np.empty((NA, 4))
-        for i, (origin, angle) in enumerate(zip(self._origins, q_a.tolist())):
-            c, s_ = math.cos(angle), math.sin(angle)
-            rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-            quat = pin.Quaternion(origin @ rz)
-            out[i] = (quat.x, quat.y, quat.z, quat.w)
-        return out
