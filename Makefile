@@ -4,19 +4,28 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 ARGS   ?=
 
-.PHONY: run test bench venv clean
+.PHONY: run test bench venv venv-run clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 
+# `make run`: the package alone (the daemon, its transports, the simulated robot and
+# the terminal's live view); the extras (rerun, the study's figures, ROS 2) on demand
+$(VENV)/.installed-run: pyproject.toml | $(BIN)/python
+	$(BIN)/pip install -q -e .
+	touch $@
+
+# `make test`: everything the tests use (a superset of the above)
 $(VENV)/.installed: pyproject.toml | $(BIN)/python
 	$(BIN)/pip install -q -e '.[test]'
-	touch $@
+	touch $@ $(VENV)/.installed-run
+
+venv-run: $(VENV)/.installed-run
 
 venv: $(VENV)/.installed
 
-run: venv
+run: venv-run
 	$(BIN)/mmctl run $(ARGS)
 
 # --max-worker-restart=0: a worker that dies (a crash in a C extension, or the

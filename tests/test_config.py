@@ -38,7 +38,7 @@ def test_defaults_are_the_paper_values() -> None:
 @pytest.mark.parametrize(
     ("data", "key", "fragment"),
     [
-        ({"robot": {"q_dess": [0] * 6}}, "robot.q_dess", "unknown key; allowed keys here: arm_mount"),
+        ({"robot": {"q_dess": [0] * 6}}, "robot.q_dess", "unknown key; did you mean 'q_des'? allowed keys here: arm_mount"),
         ({"robot": {"q_des": [0, 0, 0, 0, 0]}}, "robot.q_des", "expected a list of 6 numbers, got 5"),
         ({"robot": {"q_des": "up"}}, "robot.q_des", "expected a list of 6 numbers"),
         ({"admittance": {"damping": [75, 75, -75, 75, 75, 75]}}, "admittance.damping[2]",
@@ -146,7 +146,8 @@ def test_values_that_failed_at_run_time_are_rejected_by_check_config(
     bad.write_text(text)
     assert main(["check-config", str(bad)]) == 2
     err = capsys.readouterr().err
-    assert f"{bad}: {key} = " in err and "must be >= " in err and " and <= " in err, err
+    line = text.count("\n")  # the key's line: the last of the snippet
+    assert f"{bad}:{line}: {key} = " in err and "must be >= " in err and " and <= " in err, err
     assert err.count("\n") == 1
     with pytest.raises(ConfigError) as info:
         load_config(bad)
@@ -410,3 +411,36 @@ def test_the_ros2_section_names_a_bad_namespace_and_domain() -> None:
         config_from_dict({"ros2": {"domain_id": 233}})
     with pytest.raises(ConfigError, match=r"ros2.discovery_range = 'lan'"):
         config_from_dict({"ros2": {"discovery_range": "lan"}})
+
+
+def test_a_typo_d_key_gets_the_closest_allowed_key_and_its_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`mmctl check-config` on a file with a typo: the file's line of the key, the key,
+    the value, the nearest allowed key, and all allowed keys."""
+    bad = tmp_path / "typo.yaml"
+    bad.write_text("loop:\n  rate_hz: 500\n\nsim:\n  # comment\n  auto_enabel: true\n")
+    assert main(["check-config", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert f"{bad}:6: sim.auto_enabel = True: unknown key; did you mean 'auto_enable'? " \
+           "allowed keys here: " in err, err
+    assert "auto_enable" in err.split("allowed keys here:")[1]
+
+
+def test_no_suggestion_for_a_key_like_no_allowed_one(tmp_path: Path) -> None:
+    bad = tmp_path / "far.yaml"
+    bad.write_text("sim:\n  zzzzqq: 1\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(bad)
+    assert "did you mean" not in str(info.value)
+    assert str(info.value).startswith(f"{bad}:2: sim.zzzzqq = 1: unknown key; allowed keys")
+
+
+def test_an_error_in_a_list_item_names_the_items_line(
+        tmp_path: Path) -> None:
+    """A list entry: its own line, not its key's."""
+    bad = tmp_path / "list.yaml"
+    bad.write_text("admittance:\n  damping:\n    - 75\n    - 75\n    - -75\n"
+                   "    - 75\n    - 75\n    - 75\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(bad)
+    assert str(info.value).startswith(f"{bad}:5: admittance.damping[2] = -75"), info.value

@@ -10,6 +10,9 @@ starts DISARMED: `mmctl enable`.
 
 On a terminal a live block shows state, mode, fault, wrench, speeds, kinetic energy
 and loop timing, with the log lines scrolling above it (--no-live: plain lines).
+Elsewhere (a pipe, journald) a ``summary`` event every --summary-every seconds says
+the same in one line.  A start that fails ends with ``daemon_stopped`` naming the
+error, and leaves no live block behind.
 Push the simulated handle yourself from another terminal: `mmctl sim push 30 0 0`.
 """
 
@@ -45,6 +48,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "an hour at 500 Hz)")
     p.add_argument("--no-live", action="store_true",
                    help="no live status block on a terminal (plain log lines)")
+    p.add_argument("--summary-every", type=float, default=5.0, metavar="S",
+                   help="where no live block shows (a pipe, journald, --no-live): log a "
+                        "one-line summary (state, mode, speeds, E_K, misses) every S "
+                        "seconds (default 5; 0: none)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,9 +65,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    import math
     import sys
     from pathlib import Path
 
+    from mmctl.errors import MmctlError
     from mmctl.runtime.client import load
     from mmctl.runtime.factory import create_daemon
     from mmctl.runtime.ipc import resolve_socket_path
@@ -97,7 +106,10 @@ def _run(args: argparse.Namespace) -> int:
     # the simulated robot is this command's, never the daemon's: opened before the
     # daemon connects to it, closed after the daemon stopped (on the robot: none)
     sim = sim_link(cfg, Path(args.sim_log) if args.sim_log else None)
-    view = None
+    if not (args.summary_every >= 0 and math.isfinite(args.summary_every)):
+        raise MmctlError(f"--summary-every {args.summary_every!r}: seconds >= 0 (0: none)")
+    view = summary = None
+    ran = False
     try:
         daemon = create_daemon(cfg, socket_path, sim=sim, telemetry=telemetry,
                                input_log=input_log)
@@ -106,13 +118,24 @@ def _run(args: argparse.Namespace) -> int:
             from mmctl.runtime.liveview import LiveView
 
             view = LiveView(daemon.live, stderr=True).start()  # before any child: theirs too
+        elif args.summary_every > 0:
+            import structlog
+
+            from mmctl.runtime.liveview import SummaryLog
+
+            summary = SummaryLog(daemon.live, args.summary_every,
+                                 structlog.get_logger("mmctl.daemon")).start()
         if sim is not None:
             sim.start(lambda: daemon.stopping)
         on_ready = auto_enable if sim is not None and cfg.sim.auto_enable else None
-        return daemon.run(duration=args.duration, install_signals=False, on_ready=on_ready)
+        code = daemon.run(duration=args.duration, install_signals=False, on_ready=on_ready)
+        ran = True
+        return code
     finally:
+        if summary is not None:
+            summary.stop()
         if view is not None:
-            view.stop()
+            view.stop(keep_block=ran)  # a start that failed: no block of a robot never run
         if sim is not None:
             sim.close()
         if input_log is not None:

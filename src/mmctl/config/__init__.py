@@ -9,6 +9,7 @@ Errors name the key path, the value and what is allowed::
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -218,9 +219,13 @@ def _key_text(node: yaml.Node) -> str:
     return str(node.value) if isinstance(node, yaml.ScalarNode) else f"<{node.id}>"
 
 
-def _check_duplicates(root: yaml.Node, source: str) -> None:
+def _check_duplicates(root: yaml.Node, source: str) -> dict[str, int]:
     """Every mapping in the document, at any depth: each key once (a ``<<`` merge key is
-    YAML's own way to override, not a duplicate).  Iterative: any depth the parser took."""
+    YAML's own way to override, not a duplicate).  Iterative: any depth the parser took.
+
+    Returns the line (1-based) of every key path and list item (``a.b``, ``a.b[2]``), for
+    the errors found later (:func:`load_config`)."""
+    lines: dict[str, int] = {}
     seen_nodes: set[int] = set()
     stack: list[tuple[yaml.Node, str]] = [(root, "")]
     while stack:
@@ -245,20 +250,25 @@ def _check_duplicates(root: yaml.Node, source: str) -> None:
                         f"duplicate key (first on line {first[ident]}, again on line {line}): "
                         "YAML would silently keep only the last one; give it once", source)
                 first[ident] = line
+                lines.setdefault(key_path, line)
                 stack.append((value_node, key_path))
         elif isinstance(node, yaml.SequenceNode):
-            stack.extend((item, f"{path}[{i}]") for i, item in enumerate(node.value))
+            for i, item in enumerate(node.value):
+                lines.setdefault(f"{path}[{i}]", item.start_mark.line + 1)
+                stack.append((item, f"{path}[{i}]"))
+    return lines
 
 
-def _parse(text: str, source: str) -> Any:
-    """The YAML document in ``text`` (None when empty), with no duplicate keys."""
+def _parse(text: str, source: str) -> tuple[Any, dict[str, int]]:
+    """The YAML document in ``text`` (None when empty), with no duplicate keys, and the
+    line of each key path (:func:`_check_duplicates`)."""
     loader = _Loader(text)
     try:
         node = loader.get_single_node()
         if node is None:
-            return None
-        _check_duplicates(node, source)
-        return loader.construct_document(node)
+            return None, {}
+        lines = _check_duplicates(node, source)
+        return loader.construct_document(node), lines
     finally:
         loader.dispose()
 
@@ -275,7 +285,7 @@ def load_config(path: str | Path) -> Config:
         raise ConfigError("<file>", str(p), f"is not UTF-8 text ({exc.reason} at byte "
                           f"{exc.start})") from None
     try:
-        data = _parse(text, str(p))
+        data, lines = _parse(text, str(p))
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}" if mark is not None else "?"
@@ -283,4 +293,23 @@ def load_config(path: str | Path) -> Config:
     except RecursionError:
         raise ConfigError("<yaml>", "?", "is nested too deeply to be a configuration",
                           str(p)) from None
-    return config_from_dict(data, str(p))
+    try:
+        return config_from_dict(data, str(p))
+    except ConfigError as exc:
+        line = _line_of(exc.key, lines)
+        if line is None or exc.source != str(p):
+            raise
+        raise ConfigError(exc.key, exc.value, exc.allowed, f"{p}:{line}") from None
+
+
+def _line_of(key: str, lines: Mapping[str, int]) -> int | None:
+    """The line of ``key`` (a path as the errors name it), or of the nearest enclosing
+    key the file has (a missing key: the section that lacks it); None if none."""
+    while key:
+        if key in lines:
+            return lines[key]
+        cut = max(key.rfind("."), key.rfind("["))
+        if cut <= 0:
+            return None
+        key = key[:cut]
+    return None

@@ -18,6 +18,7 @@ error message repeats.  ``tests/test_config.py`` checks that no number lacks the
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import types
 import typing
@@ -214,7 +215,10 @@ def build(cls: type, data: Any, path: str = "", source: str | None = None) -> An
         if key not in fields:
             allowed = ", ".join(sorted(fields)) or "(none)"
             key_path = f"{path}.{key}" if path else str(key)
-            raise ConfigError(key_path, data[key], f"unknown key; allowed keys here: {allowed}", source)
+            close = difflib.get_close_matches(str(key), list(fields), n=1, cutoff=0.6)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise ConfigError(key_path, data[key],
+                              f"unknown key; {hint}allowed keys here: {allowed}", source)
     kwargs: dict[str, Any] = {}
     for name, f in fields.items():
         key_path = f"{path}.{name}" if path else name

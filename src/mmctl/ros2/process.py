@@ -11,7 +11,6 @@ telemetry child's :func:`~mmctl.telemetry.process_publisher._background`).
 from __future__ import annotations
 
 import math
-import multiprocessing
 import os
 import signal
 import time
@@ -23,6 +22,7 @@ import structlog
 
 from mmctl.config import Config
 from mmctl.errors import MmctlError
+from mmctl.runtime.spawn import spawn_ready
 from mmctl.telemetry import ring as tr
 from mmctl.telemetry.ring import SampleRing
 
@@ -70,30 +70,14 @@ class Ros2Process:
         if self._proc is not None:
             raise RuntimeError("the ROS 2 bridge is already started")
         ring = SampleRing.create_file(RING_SIZE, timing=self.timing)
-        ctx = multiprocessing.get_context("spawn")
-        parent, child = ctx.Pipe()
-        proc = ctx.Process(target=_serve, args=(child, ring.path, RING_SIZE, self.cfg,
-                                                self.avoid_cpus, self.origin_wall),
-                           name="mmctl-ros2", daemon=True)
         try:
-            proc.start()
-            child.close()
-            self._conn, self._proc = parent, proc
-            try:
-                if not parent.poll(self.start_timeout):
-                    raise Ros2Error(f"the ROS 2 bridge did not start within "
-                                    f"{self.start_timeout:g} s")
-                reply = parent.recv()
-            except (EOFError, OSError) as exc:
-                raise Ros2Error(f"the ROS 2 bridge exited at start (code {proc.exitcode})"
-                                ) from exc
-            if reply[0] != "ready":
-                raise Ros2Error(f"the ROS 2 bridge: {reply[1] if len(reply) > 1 else reply}")
-        except BaseException:
-            self._kill()
-            raise
+            self._proc, self._conn = spawn_ready(
+                _serve, (ring.path, RING_SIZE, self.cfg, self.avoid_cpus, self.origin_wall),
+                name="mmctl-ros2", who="the ROS 2 bridge", start_timeout=self.start_timeout,
+                error=Ros2Error)
         finally:
             ring.unlink()  # mapped by both sides by now (or not needed any more)
+        proc = self._proc
         self.ring = ring
         log.info("ros2_bridge_started", pid=proc.pid, domain_id=self.cfg.ros2.domain_id,
                  discovery_range=self.cfg.ros2.discovery_range,

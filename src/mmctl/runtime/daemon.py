@@ -167,6 +167,8 @@ class Daemon:
         self._snapshot_lock = threading.RLock()  # (status() in it asks for loop_stats)
         self._loop_stats: tuple[float, dict[str, float | int]] | None = None
         self.stop_reason = ""
+        #: what ended :meth:`run` early (a device that did not connect, ...), else None
+        self.error: BaseException | None = None
         self._started = time.monotonic()
         self.cpu_latency = (CpuLatencyRequest(cfg.loop.cpu_dma_latency)
                             if cfg.loop.cpu_dma_latency >= 0 else None)
@@ -308,6 +310,7 @@ class Daemon:
             pass  # a signal during start-up: nothing moved; shut down what was opened
         except BaseException as exc:
             self.stop_reason = self.stop_reason or f"error: {exc}"
+            self.error = exc
             raise
         finally:
             self.shutdown()
@@ -375,8 +378,10 @@ class Daemon:
         if self.cpu_latency is not None:
             self.cpu_latency.release()
         self.notifier.close()
-        log.info("daemon_stopped", cycles=self.cycles, error=repr(self.loop.error)
-                 if self.loop.error else None)
+        error = self.loop.error or self.error
+        (log.error if error is not None else log.info)(
+            "daemon_stopped", cycles=self.cycles,
+            error=None if error is None else str(error) or repr(error))
 
     def install_signals(self) -> None:
         """Every signal whose default would end the process is a stop: the stop commands

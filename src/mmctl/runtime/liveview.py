@@ -33,7 +33,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
 from enum import Enum
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # typing.Self is 3.11+; the package supports 3.10
     from typing_extensions import Self
@@ -313,8 +313,10 @@ class LiveView:
             atexit.register(self.stop)
         return self
 
-    def stop(self) -> None:
-        """Drain the log, give ``fd`` back to the terminal, print the last block once.
+    def stop(self, keep_block: bool = True) -> None:
+        """Drain the log, give ``fd`` back to the terminal, print the last block once
+        (``keep_block``; False: erase it, for a daemon that never ran, whose block
+        would show a robot that was never there).
 
         Idempotent; a no-op before :meth:`start`.  Call it from the shutdown path (not
         from a signal handler); it also runs at interpreter exit if nobody called it.
@@ -342,7 +344,8 @@ class LiveView:
                 tail += b"\n"  # a line still open at the end
             if painted:
                 try:
-                    self._paint(self._take_note() + tail, self._frame(final=True), final=True)
+                    self._paint(self._take_note() + tail,
+                                self._frame(final=True) if keep_block else [], final=True)
                 except OSError as exc:  # the terminal went away (hang-up)
                     self.error = self.error or exc
         finally:
@@ -476,7 +479,7 @@ class LiveView:
             out += f"\r\x1b[{rows}A{_ERASE}".encode()
         out += lines
         if block is not None:
-            self._block = block
+            self._block = block  # ([] at a final paint: the block erased, none drawn)
         text = "".join(self._decorate(line) + "\n" for line in self._block)
         out += text.encode(self._encoding, errors="replace")
         _write_all(self._tty, bytes(out))
@@ -531,3 +534,69 @@ def _grow_pipe(fd: int) -> None:
             fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, 1 << 20)
         except OSError:
             pass  # over /proc/sys/fs/pipe-max-size: the default (64 KiB) is only less roomy
+
+
+def summary_fields(snap: Mapping[str, object]) -> dict[str, object]:
+    """The live block in one log event's fields: state, mode, fault, the measured
+    end-effector and base speeds [m/s], E_K [J] (arm + base, measured), the loop's
+    misses over its window [%] and cycles; None where the snapshot has no number."""
+    loop = snap.get("loop")
+    loop = loop if isinstance(loop, Mapping) else {}
+    misses = loop.get("misses")
+    misses = misses if isinstance(misses, Mapping) else {}
+    arm, base = _finite(snap.get("energy_arm")), _finite(snap.get("energy_base"))
+
+    def r(value: object, nd: int) -> float | None:
+        x = _finite(value)
+        return None if x is None else round(x, nd)
+
+    out: dict[str, object] = {
+        "state": _text(snap.get("state")), "mode": _text(snap.get("mode")),
+        "ee_speed_m_s": r(snap.get("ee_speed"), 4),
+        "base_speed_m_s": r(snap.get("base_speed"), 4),
+        "e_k_J": None if arm is None or base is None else round(arm + base, 4),
+        "misses_pct": r(misses.get("window_pct"), 2),
+        "cycles": snap.get("cycles")}
+    fault = _text(snap.get("fault"))
+    if fault != "-":
+        out["fault"] = fault
+    sim = snap.get("sim")
+    if isinstance(sim, Mapping) and sim.get("faults"):
+        out["sim_faults"] = _names(sim.get("faults"))
+    return out
+
+
+class SummaryLog:
+    """Off a terminal (a pipe, journald), where no live block shows: every ``every``
+    seconds one ``summary`` event with :func:`summary_fields` of ``snapshot()``, so a
+    piped run still shows whether the robot moves.  A snapshot that raises is logged
+    once per failure, never ends the thread."""
+
+    def __init__(self, snapshot: Callable[[], Mapping[str, object]], every: float,
+                 log: object):
+        if not (every > 0 and math.isfinite(every)):
+            raise ValueError(f"every = {every!r}: a positive, finite number of seconds")
+        self._snapshot = snapshot
+        self._every = every
+        self._log = log
+        self._halt = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="mmctl-summary", daemon=True)
+
+    def start(self) -> Self:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._halt.set()
+        if self._thread.ident is not None:
+            self._thread.join(5.0)
+
+    def _run(self) -> None:
+        log: Any = self._log
+        while not self._halt.wait(self._every):
+            try:
+                fields = summary_fields(self._snapshot())
+            except Exception as exc:  # noqa: BLE001 -- a summary never ends the run
+                log.warning("summary_unavailable", error=f"{type(exc).__name__}: {exc}")
+                continue
+            log.info("summary", **fields)

@@ -74,6 +74,9 @@ FAULTS = {
 }
 #: Faults that are events, not states: "off" means nothing.
 _EVENTS = {"arm_not_playing", "drive_fault", "drive_reboot"}
+#: [s] how long an event fault stays listed in the status when its effect cannot be
+#: read back from the fake (a reboot's): long enough for a 1 s live view to show it
+EVENT_LISTED_S = 10.0
 _HUMAN_PERIOD = 0.01  # [s] the person's update period (100 Hz: slow next to a hand)
 
 
@@ -110,6 +113,7 @@ class SimWorld:
         self.push: Vec | None = None
         self._push_until = math.inf
         self._faults: set[str] = set()
+        self._events: dict[str, float] = {}  # event fault -> time.monotonic() injected
         self._wrench = np.zeros(6)
         self._last_force = np.zeros(3)
         self._handle = np.zeros(3)
@@ -438,7 +442,8 @@ class SimWorld:
             self.can_server.unplug(link.channel, on)
         with self._lock:
             if fault in _EVENTS:
-                pass  # an event: nothing stays on
+                if on:  # an event: nothing stays on, but its effect may (active_faults)
+                    self._events[fault] = time.monotonic()
             elif on:
                 self._faults.add(fault)
             else:
@@ -447,12 +452,39 @@ class SimWorld:
             self._apply_enabling()
         log.info("sim_fault", fault=fault, on=on)
 
+    def active_faults(self) -> list[str]:
+        """The injected faults in effect now: the states switched on, and the events
+        whose effect holds (drive_fault: the drive still in FAULT, or its fault
+        reaction; arm_not_playing: the UR's program not running again yet;
+        drive_reboot: for EVENT_LISTED_S after it)."""
+        with self._lock:
+            active = set(self._faults)
+            events = dict(self._events)
+        now = time.monotonic()
+        for name, when in events.items():
+            if name == "drive_fault":
+                nid = self.cfg.base.canopen.node_ids[0]
+                still = any(d.address == nid and "FAULT" in d.state
+                            for d in self.drives.states())
+            elif name == "arm_not_playing":
+                still = self.ur.alive and self.ur.state().runtime_state != 2  # PLAYING
+            else:
+                still = now - when < EVENT_LISTED_S
+            if still:
+                active.add(name)
+            elif now - when >= EVENT_LISTED_S:
+                with self._lock:
+                    if self._events.get(name) == when:
+                        del self._events[name]
+        return sorted(active)
+
     def status(self) -> dict[str, Any]:
-        """For ``mmctl status``: the person, the push, the injected faults, truth."""
+        """For ``mmctl status``: the person, the push, the injected faults in effect
+        (:meth:`active_faults`), truth."""
         return {
             "human": self.human_on,
             "push": None if self.push is None else self.push.tolist(),
-            "faults": sorted(self._faults),
+            "faults": self.active_faults(),
             # the handle where the arm and the base are right now (the person's last
             # update may be a while ago on a busy machine)
             "handle_world": [round(float(x), 5) for x in self._handle_truth()],

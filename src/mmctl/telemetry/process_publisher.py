@@ -21,7 +21,6 @@ when the parent goes away it flushes and exits by itself.
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import signal
 import threading
@@ -34,6 +33,7 @@ import structlog
 from mmctl.config.base import MecanumConfig
 from mmctl.config.robot import RobotConfig
 from mmctl.errors import again
+from mmctl.runtime.spawn import spawn_ready
 from mmctl.telemetry.events import Event
 from mmctl.telemetry.publisher import EVENT_QUEUE_SIZE
 from mmctl.telemetry.queue import DropQueue
@@ -111,27 +111,11 @@ class ProcessPublisher:
         if self._proc is not None:
             raise RuntimeError("publisher already started")
         ring = SampleRing.create_file(self.queue_size, timing=self.timing)
-        ctx = multiprocessing.get_context("spawn")
-        parent, child = ctx.Pipe()
-        proc = ctx.Process(target=_serve, args=(child, ring.path, self.queue_size),
-                           kwargs=self._child_args, name="mmctl-telemetry", daemon=True)
         try:
-            proc.start()
-            child.close()
-            self._conn, self._proc = parent, proc
-            try:
-                if not parent.poll(self.start_timeout):
-                    raise TelemetryError(f"the telemetry process did not start within "
-                                         f"{self.start_timeout:g} s")
-                reply = parent.recv()
-            except (EOFError, OSError) as exc:
-                raise TelemetryError(f"the telemetry process exited at start "
-                                     f"(code {proc.exitcode})") from exc
-            if reply[0] != "ready":
-                raise TelemetryError(str(reply[1]) if len(reply) > 1 else repr(reply))
-        except BaseException:
-            self._kill()
-            raise
+            self._proc, self._conn = spawn_ready(
+                _serve, (ring.path, self.queue_size), kwargs=self._child_args,
+                name="mmctl-telemetry", who="the telemetry process",
+                start_timeout=self.start_timeout, error=TelemetryError)
         finally:
             ring.unlink()  # mapped by both sides by now (or not needed any more)
         self.ring = ring

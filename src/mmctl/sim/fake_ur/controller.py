@@ -83,10 +83,13 @@ class FakeURController:
         """Spawn the process and wait until its three ports accept connections."""
         if self.alive:
             return self
+        from mmctl.runtime import logging as mmctl_logging
+
         parent, child = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(
             target=server.run, args=(self.host, self.q_init, self._block, child,
-                                      self.log_capacity, self._log.next_seq),
+                                      self.log_capacity, self._log.next_seq, False,
+                                      mmctl_logging.CURRENT),
             name=f"fake-ur-{self.host}", daemon=True)
         proc.start()
         child.close()
