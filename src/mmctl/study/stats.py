@@ -8,7 +8,9 @@ pairs regardless).  Effect size: the matched-pairs rank-biserial correlation (Ke
 2014), ``r = (R+ - R-) / (R+ + R-)`` with R+/R- the rank sums of the positive and
 negative differences (zeros dropped): +1 when every user has a > b, -1 when every one
 has a < b.  Confidence intervals: 95 % percentile bootstrap over users (pairs resampled
-together), :data:`BOOTSTRAP` resamples from a fixed seed, so a table is reproducible.
+together), :data:`BOOTSTRAP` resamples from a fixed seed, so a table is reproducible;
+none below :data:`MIN_BOOTSTRAP_N` users.  Exact p-values count the signed-rank
+statistic's permutation distribution with ties and zeros (:func:`signed_rank_exact`).
 
 The Wilcoxon p-values use the normal approximation without continuity correction
 (``method="approx"``) by default: that is what reproduces the paper's floor
@@ -20,7 +22,6 @@ distribution would give ``3 x 1.49e-8``.
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Mapping, Sequence
 from itertools import combinations
 from typing import NamedTuple
@@ -32,6 +33,11 @@ from numpy.typing import ArrayLike
 ALPHA = 0.05
 #: bootstrap resamples (percentile intervals; the seed is fixed: tables reproduce)
 BOOTSTRAP = 4000
+#: the fewest users a bootstrap interval is given for: below, a percentile bootstrap
+#: of a median has a handful of distinct values and its "interval" collapses toward a
+#: point (3 users: at most 10 distinct resampled medians); NaN then, and the tables
+#: say so
+MIN_BOOTSTRAP_N = 10
 _NAN2 = (math.nan, math.nan)
 
 
@@ -153,6 +159,8 @@ def median_ci(x: ArrayLike, seed: int = 0) -> tuple[float, float, float]:
     v = np.asarray(x, dtype=float)
     if v.size == 0:
         return (math.nan, *_NAN2)
+    if v.size < MIN_BOOTSTRAP_N:
+        return float(np.median(v)), *_NAN2
     lo, hi = _interval(np.median(v[_resamples(v.size, seed)], axis=1))
     return float(np.median(v)), lo, hi
 
@@ -163,20 +171,48 @@ def _paired(a: np.ndarray, b: np.ndarray, seed: int) -> tuple[float, tuple[float
     d = a - b
     if d.size == 0:
         return math.nan, _NAN2, math.nan, _NAN2
+    if d.size < MIN_BOOTSTRAP_N:
+        return float(rank_biserial(d)), _NAN2, float(np.median(d)), _NAN2
     boot = d[_resamples(d.size, seed)]
     return (float(rank_biserial(d)), _interval(rank_biserial(boot)),
             float(np.median(d)), _interval(np.median(boot, axis=1)))
 
 
+def signed_rank_exact(x: ArrayLike, y: ArrayLike) -> float:
+    """The exact two-sided p of the Wilcoxon signed-rank test of the pairs (x, y),
+    ties and zeros included: zero differences dropped (Wilcoxon's convention, as
+    :func:`wilcoxon`), tied |differences| given their mid-ranks, and the statistic's
+    null distribution counted over all 2^n sign patterns of *those* ranks (the
+    permutation distribution; scipy's "exact" assumes ranks 1..n, no ties, which the
+    study's 2 ms-quantised T_f breaks).  All differences zero: p = 1.
+
+    p = P(|T+ - E T+| >= |t+ - E T+|) under the null, T+ the sum of the positive
+    differences' ranks; mid-ranks are multiples of 1/2, so the distribution is counted
+    exactly on twice the ranks (integers)."""
+    from scipy import stats
+
+    d = np.asarray(x, dtype=float) - np.asarray(y, dtype=float)
+    d = d[d != 0.0]
+    n = d.size
+    if n == 0:
+        return 1.0
+    ranks2 = np.rint(2.0 * stats.rankdata(np.abs(d))).astype(np.int64)
+    total = int(ranks2.sum())
+    counts = np.zeros(total + 1)
+    counts[0] = 1.0
+    for r in ranks2:  # each rank in T+ or not: the distribution of 2 T+
+        counts[r:] = counts[r:] + counts[: total + 1 - r].copy()
+    counts /= counts.sum()
+    t2 = int(ranks2[d > 0.0].sum())
+    mid = total / 2.0
+    values = np.arange(total + 1)
+    extreme = np.abs(values - mid) >= abs(t2 - mid) - 1e-9
+    return float(min(1.0, counts[extreme].sum()))
+
+
 def _exact(a: np.ndarray, b: np.ndarray) -> float:
-    """The exact p-value (scipy falls back to the normal approximation, and says so,
-    when ties or zeros make the exact distribution unavailable: NaN then)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        try:
-            return wilcoxon(a, b, "exact").pvalue
-        except (UserWarning, ValueError):
-            return math.nan
+    """The exact p-value, ties and zeros included (:func:`signed_rank_exact`)."""
+    return signed_rank_exact(a, b)
 
 
 def pairwise_wilcoxon_holm(
