@@ -74,8 +74,17 @@ class Series(NamedTuple):
 class Execution(NamedTuple):
     """One user with one approach.
 
-    E [J], F_h [N], v [m/s], x_f [m], T_f [s]: the paper's metrics; E_base [J]: mean
-    kinetic energy of the base alone; F_max [N]: peak ||f_h||; switches: presses
+    E [J], F_h [N], v [m/s], x_f [m], T_f [s]: the paper's metrics, every one from what
+    the robot measures (one velocity source, as a real study's log: the arm's joints
+    and the base's wheel odometry; E and v both from those velocities), F_h as the
+    paper defines it, ||f_h|| of the wrench after the sensor chain (bias, handle
+    weight, filter, the 2 N dead band: what the controller is pushed with);
+    F_applied [N]: the mean force the person's hand applied, before the sensor chain;
+    E_base [J]: mean kinetic energy of the base alone; F_max [N]: peak ||f_h||;
+    wall_clearance [m]: the smallest distance of the base's deck (its footprint) to
+    the task's surface plane (the wall's face as the handle meets it), from the base's
+    true pose; E_base_near [J]: the base's mean kinetic energy while its deck was within
+    :data:`NEAR_WALL` of that plane (NaN: never); switches: presses
     of the handle's mode button (only the switch condition has one: 0 otherwise);
     completed: the user finished
     the last insertion before the time limit (otherwise T_f is the limit); x_f_hold
@@ -104,21 +113,29 @@ class Execution(NamedTuple):
     limited: float = 0.0
     x_f_hold: float = math.nan
     stopped: str = ""
+    F_applied: float = math.nan
+    wall_clearance: float = math.nan
+    E_base_near: float = math.nan
 
     def metric(self, name: str) -> float:
         """One of :data:`METRICS` by name."""
         return float(getattr(self, name))
 
 
+#: [m] "near the wall" for :attr:`Execution.E_base_near`
+NEAR_WALL = 0.5
+
 #: results.csv columns, in order.
 CSV_COLUMNS: tuple[str, ...] = (
     "user", "strategy", *REPORT_METRICS, "E_base", "F_max", "switches", "completed",
-    "faults", "stopped",
+    "faults", "stopped", "limited", "F_applied", "wall_clearance", "E_base_near",
 )
 
 
 def csv_row(e: Execution) -> list[str]:
     """The execution as results.csv fields (floats with 10 significant digits)."""
     fl = [format(e.metric(m), ".10g") for m in (*REPORT_METRICS, "E_base", "F_max")]
+    more = [format(e.metric(m), ".10g")
+            for m in ("limited", "F_applied", "wall_clearance", "E_base_near")]
     return [str(e.user), e.strategy, *fl, str(e.switches), str(int(e.completed)), str(e.faults),
-            e.stopped]
+            e.stopped, *more]

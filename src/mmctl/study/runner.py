@@ -65,6 +65,7 @@ from mmctl.sim.human import (
     HumanAction,
     HumanParams,
     Phase,
+    Plane,
     SimulatedHuman,
     Task,
     noise_seed,
@@ -74,7 +75,7 @@ from mmctl.sim.human import (
 from mmctl.sim.plant import Plant
 from mmctl.study.config import StudyConfig
 from mmctl.study.executor import Executor, run_all
-from mmctl.study.results import Execution, Series
+from mmctl.study.results import NEAR_WALL, Execution, Series
 from mmctl.study.users import draw_user
 from mmctl.types import ArmState, Odometry, Wrench
 
@@ -165,7 +166,8 @@ def run_execution(
     person = draw_user(study.seed, user) if variant is None else variant.user(study.seed, user)
     # the same noise stream for the user in every approach; a mode button only in the
     # switch condition (the paper's other conditions offer no switching)
-    human = SimulatedHuman(person, study_task(model, q0, study), noise_seed=noise_seed(
+    task = study_task(model, q0, study)
+    human = SimulatedHuman(person, task, noise_seed=noise_seed(
         study.seed, user), button=strategy == "switch")
     p_des = model.update(np.concatenate((np.asarray(cfg.robot.q_des), np.zeros(3))),
                          inertia=False).p_base
@@ -183,6 +185,9 @@ def run_execution(
     energy = np.zeros(n_all)
     energy_base = np.zeros(n_all)
     force = np.zeros(n_all)
+    applied = np.zeros(n_all)
+    clearance = np.full(n_all, np.inf)
+    deck = _Deck(cfg, task.surface)
     speed = np.zeros(n_all)
     deviation = np.zeros(n_all)
     loco = np.zeros(n_all, dtype=np.int8)
@@ -213,10 +218,17 @@ def run_execution(
         _raise_refused(events)
         out = cmds.result
         assert out is not None  # every device is read in the study
+        # every metric from what the robot measures (the arm's joints, the wheels'
+        # odometry): E_K and the speed from the same velocities; F_h after the sensor
+        # chain, the hand's applied force beside it
         energy[k] = out.energy.total
         energy_base[k] = out.energy.base
-        force[k] = math.sqrt(float(fw @ fw))
-        speed[k] = math.sqrt(float(v_b @ v_b))
+        f_out = out.f_h[:3]
+        force[k] = math.sqrt(float(f_out @ f_out))
+        applied[k] = math.sqrt(float(fw @ fw))
+        v_meas = out.v[:3]
+        speed[k] = math.sqrt(float(v_meas @ v_meas))
+        clearance[k] = deck.clearance(q)
         dp = kin.p_base - p_des
         deviation[k] = math.sqrt(float(dp @ dp))
         ctl_state = state.chain.controller
@@ -250,12 +262,44 @@ def run_execution(
         deviation=deviation[: n + 1 : step_].astype(np.float32),
         locomotion=loco[: n + 1 : step_].copy(),
     )
+    near = clearance[sl] < NEAR_WALL
     ex = Execution(user, strategy, m.E_mean, m.F_mean, m.v_mean, m.x_f, m.T_f,
                    float(energy_base[sl].mean()), float(force[sl].max()), switches, completed,
                    faults, series, float(limited[sl].mean()),
                    x_f_hold=math.sqrt(float(dh @ dh)),
-                   stopped=latched.value if (latched := state.safety.latched) else "")
+                   stopped=latched.value if (latched := state.safety.latched) else "",
+                   F_applied=float(applied[sl].mean()),
+                   wall_clearance=(float(clearance[sl].min()) if deck.surface is not None
+                                   else math.nan),
+                   E_base_near=(float(energy_base[sl][near].mean()) if near.any()
+                                else math.nan))
     return ex, time.process_time() - cpu0, tare_cycles + k_last + 1
+
+
+class _Deck:
+    """The base's deck as its footprint (a rectangle in base_link, ``robot.deck_size``
+    x/y about ``robot.deck_center``) and its distance to the task's surface plane
+    (normal toward the robot; None: no surface, distance +inf)."""
+
+    def __init__(self, cfg: Config, surface: Plane | None) -> None:
+        sx, sy = cfg.robot.deck_size[0] / 2.0, cfg.robot.deck_size[1] / 2.0
+        cx, cy = cfg.robot.deck_center[0], cfg.robot.deck_center[1]
+        self.corners = np.array([[cx + a * sx, cy + b * sy] for a in (-1, 1) for b in (-1, 1)])
+        self.surface = surface
+        if surface is not None:
+            self.normal = np.asarray(surface.normal, dtype=float)[:2]
+            self.offset = float(np.asarray(surface.point, dtype=float)[:2] @ self.normal)
+
+    def clearance(self, q: np.ndarray) -> float:
+        """The smallest distance [m] of the footprint at the base pose q[6:9] (true
+        pose: the world's) in front of the plane (negative: through it)."""
+        if self.surface is None:
+            return math.inf
+        c, s = math.cos(q[8]), math.sin(q[8])
+        n = self.normal
+        # n . (p + R corner) for each corner, R^T n taken once
+        nb = np.array([c * n[0] + s * n[1], -s * n[0] + c * n[1]])
+        return float(q[6] * n[0] + q[7] * n[1] + (self.corners @ nb).min() - self.offset)
 
 
 _Z3 = np.zeros(3)
