@@ -128,11 +128,20 @@ def test_analysis_ranks_the_factor_that_moves_the_output() -> None:
         for u in range(4):
             for s in ("locomotion", "switch", "min-energy"):
                 e = 1.0 + (4.0 * row[0] if s == "locomotion" else 0.0)
+                unfinished = u == 3 and s == "switch" and row[1] > 0.5
                 execs.append(Execution(user=u, strategy=s, E=e, F_h=10.0, v=0.1, x_f=0.1,
-                                       T_f=30.0, E_base=0.5, F_max=20.0, switches=0,
-                                       completed=True, faults=0, series=_series()))
+                                       T_f=60.0 if unfinished else 30.0, E_base=0.5,
+                                       F_max=20.0, switches=0, completed=not unfinished,
+                                       faults=0, series=_series()))
         points.append(execs)
     doc = analyse(factors, x, points, seed=0)
+    # completion is recorded per execution and counted per point and in all
+    want = [int(row[1] > 0.5) for row in x]
+    assert [p["unfinished"] for p in doc["points"]] == want
+    assert doc["unfinished"] == sum(want) and doc["executions"] == 12 * len(x)
+    for p, row in zip(doc["points"], x, strict=True):
+        (ex,) = [e for e in p["executions"] if e["user"] == 3 and e["strategy"] == "switch"]
+        assert ex["completed"] is not (row[1] > 0.5) and len(p["executions"]) == 12
     claim = next(c for c in doc["claims"] if c["claim"].startswith("Ē [J]: Locomotion >")
                  and "Minimum" in c["claim"])
     assert claim["factors"][0]["name"] == "human.f0" and claim["factors"][0]["rank"] == 1

@@ -367,6 +367,13 @@ def analyse(factors: Sequence[Factor], x: np.ndarray, points: Sequence[Sequence[
             doc["claims"][c.text()] = {"y": y, "r": r, "holds": h}
         doc["medians"] = {s: {m: float(np.median(_paired(execs, s, m)))
                               for m in METRIC_LABELS} for s in strategies}
+        # completion per execution: an unfinished one enters with T_f = t_max and its
+        # x_f where it stopped, which can drive a point's outputs alone
+        doc["executions"] = [{"user": e.user, "strategy": e.strategy,
+                              "completed": bool(e.completed), "stopped": e.stopped,
+                              "T_f": float(e.T_f)}
+                             for e in sorted(execs, key=lambda e: (e.user, e.strategy))]
+        doc["unfinished"] = sum(1 for e in execs if not e.completed)
         pts.append(doc)
     out_claims = []
     for i, c in enumerate(claims):
@@ -395,7 +402,9 @@ def analyse(factors: Sequence[Factor], x: np.ndarray, points: Sequence[Sequence[
     return {"factors": [{"name": f.name, "group": f.group, "low": f.low, "high": f.high,
                          "unit": f.unit, "source": f.source} for f in factors],
             "levels": LEVELS, "r_crit": R_CRIT, "strategies": strategies,
-            "claims": out_claims, "points": pts}
+            "claims": out_claims, "points": pts,
+            "executions": sum(len(p) for p in points),
+            "unfinished": sum(p["unfinished"] for p in pts)}
 
 
 def holds_where(by_level: Sequence[Sequence[float]], f: Factor) -> str:
