@@ -142,3 +142,16 @@ def test_no_bootstrap_interval_below_ten_users() -> None:
     n = MIN_BOOTSTRAP_N
     big = pairwise_wilcoxon_holm({"a": np.arange(n) + 1.0, "b": np.zeros(n)})[0]
     assert all(math.isfinite(x) for x in (*big.effect_ci, *big.diff_ci))
+
+
+def test_differences_equal_up_to_float_noise_are_ties() -> None:
+    """T_f is a multiple of the 2 ms period: a - b of such values must tie exactly."""
+    from mmctl.study.stats import paired_differences, signed_rank_exact, wilcoxon
+
+    a = np.array([29.034, 30.1, 28.002, 31.5]) + np.array([0.0, 1e-14, -2e-14, 0.0])
+    b = np.array([28.9, 29.966, 27.868, 31.366])
+    d = paired_differences(a, b)
+    assert np.unique(d).size == 1  # all 0.134
+    # all four positive and tied: the same p as four equal differences
+    assert wilcoxon(a, b).pvalue == wilcoxon(np.full(4, 0.134), np.zeros(4)).pvalue
+    assert signed_rank_exact(a, b) == pytest.approx(2 / 16)

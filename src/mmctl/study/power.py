@@ -131,7 +131,10 @@ def tost_wilcoxon(d: ArrayLike, margin: float) -> tuple[float, float, float]:
     rejected, p_TOST = the larger).  Equivalence at alpha when p_TOST < alpha."""
     from scipy import stats
 
+    from mmctl.study.stats import paired_differences
+
     x = np.asarray(d, dtype=float)
+    zero = np.zeros_like(x)
     if margin <= 0.0 or not math.isfinite(margin):
         raise ValueError(f"margin must be > 0, got {margin}")
     if x.size == 0:
@@ -143,8 +146,9 @@ def tost_wilcoxon(d: ArrayLike, margin: float) -> tuple[float, float, float]:
         return float(stats.wilcoxon(v, zero_method="wilcox", correction=False,
                                     alternative=alternative, method="approx").pvalue)
 
-    p_lo = one(x + margin, "greater")  # H0: median <= -margin
-    p_hi = one(x - margin, "less")  # H0: median >= +margin
+    # (rounded: a difference equal to the margin up to float noise is zero)
+    p_lo = one(paired_differences(x + margin, zero), "greater")  # H0: median <= -margin
+    p_hi = one(paired_differences(x - margin, zero), "less")  # H0: median >= +margin
     return p_lo, p_hi, max(p_lo, p_hi)
 
 
@@ -352,6 +356,8 @@ def claims_markdown(rows: Sequence[ClaimRow], alpha: float = ALPHA) -> str:
             tost = f"{r.tost_p:.3g} (±{r.margin:g})"
             verdict = ("equivalent" if r.tost_p < alpha else
                        "differs" if r.sim_p_holm < alpha else "inconclusive")
+            if verdict == "equivalent" and r.sim_p_holm < alpha:
+                verdict = "equivalent (differs, by less than the margin)"
         else:
             tost = "—"
             sign = 1 if r.paper_claim == ">" else -1

@@ -109,6 +109,22 @@ def friedman(*groups: ArrayLike) -> TestResult:
     return TestResult(float(res.statistic), float(res.pvalue))
 
 
+#: [metric unit] the resolution paired differences are compared at: two differences
+#: equal up to floating-point noise (T_f is a multiple of the 2 ms period; a - b of
+#: such values differs in its last bits) are a tie, and a difference below it is zero.
+#: Every metric is in SI units whose meaningful resolution is far coarser.
+DIFF_RESOLUTION = 1e-9
+
+
+def paired_differences(x: ArrayLike, y: ArrayLike) -> np.ndarray:
+    """x - y, rounded to :data:`DIFF_RESOLUTION` (ties stay ties; see there)."""
+    a = np.asarray(x, dtype=float)
+    b = np.asarray(y, dtype=float)
+    if a.shape != b.shape:
+        raise ValueError(f"paired samples differ in shape: {a.shape} vs {b.shape}")
+    return np.asarray(np.round((a - b) / DIFF_RESOLUTION) * DIFF_RESOLUTION)
+
+
 def wilcoxon(x: ArrayLike, y: ArrayLike, method: str = "approx") -> TestResult:
     """Two-sided Wilcoxon signed-rank test of the paired samples ``x`` and ``y``.
 
@@ -118,13 +134,10 @@ def wilcoxon(x: ArrayLike, y: ArrayLike, method: str = "approx") -> TestResult:
     """
     from scipy import stats
 
-    a = np.asarray(x, dtype=float)
-    b = np.asarray(y, dtype=float)
-    if a.shape != b.shape:
-        raise ValueError(f"paired samples differ in shape: {a.shape} vs {b.shape}")
-    if np.all(a - b == 0.0):
+    d = paired_differences(x, y)
+    if np.all(d == 0.0):
         return TestResult(0.0, 1.0)
-    res = stats.wilcoxon(a, b, zero_method="wilcox", correction=False, method=method)
+    res = stats.wilcoxon(d, zero_method="wilcox", correction=False, method=method)
     return TestResult(float(res.statistic), float(res.pvalue))
 
 
@@ -168,7 +181,7 @@ def median_ci(x: ArrayLike, seed: int = 0) -> tuple[float, float, float]:
 def _paired(a: np.ndarray, b: np.ndarray, seed: int) -> tuple[float, tuple[float, float],
                                                                float, tuple[float, float]]:
     """Effect size and median difference of the pairs (a, b), with their intervals."""
-    d = a - b
+    d = paired_differences(a, b)
     if d.size == 0:
         return math.nan, _NAN2, math.nan, _NAN2
     if d.size < MIN_BOOTSTRAP_N:
@@ -191,7 +204,7 @@ def signed_rank_exact(x: ArrayLike, y: ArrayLike) -> float:
     exactly on twice the ranks (integers)."""
     from scipy import stats
 
-    d = np.asarray(x, dtype=float) - np.asarray(y, dtype=float)
+    d = paired_differences(x, y)
     d = d[d != 0.0]
     n = d.size
     if n == 0:
