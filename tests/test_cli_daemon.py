@@ -207,9 +207,11 @@ def test_the_daemons_process_holds_no_simulation(daemon: Proc) -> None:
     proc = st["process"]
     assert proc["pid"] == daemon.proc.pid
     assert proc["simulation_loaded"] is False
-    # the loop, the control socket, the canopen master's notifier and heartbeat: nothing
-    # of the simulation's (its person, fakes, socketcand server threads)
-    known = ("MainThread", "mmctl-loop", "mmctl-ipc", "Notifier for bus", "Cyclic send task")
+    # the loop, the control socket, the canopen master's notifier and heartbeat, the
+    # summary line off a terminal: nothing of the simulation's (its person, fakes,
+    # socketcand server threads)
+    known = ("MainThread", "mmctl-loop", "mmctl-ipc", "Notifier for bus", "Cyclic send task",
+             "mmctl-summary")
     assert all(t.startswith(known) for t in proc["threads"]), proc
     assert not [t for t in proc["threads"] if "sim" in t or "fake" in t], proc
     assert _listening_tcp(daemon.proc.pid) == []  # RTDE, dashboard, socketcand: elsewhere

@@ -56,14 +56,65 @@ def test_significance_table_format() -> None:
     from mmctl.study.report import values
     from mmctl.study.stats import analyse
 
-    tab = significance_table(analyse(values(ex), ("E", "x_f")))
-    lines = tab.splitlines()
-    assert lines[0].startswith("| Metric | Comparison | p_corr | Significance | paper p_corr "
-                               "| p_corr exact | r [95 % CI] |")
+    tab = significance_table(analyse(values(ex), ("E", "x_f")), 7)
+    table, note = tab.split("\n\n")
+    lines = table.splitlines()
+    head = [c.strip() for c in lines[0].strip("|").split("|")]
+    assert head == ["Metric", "Comparison", "p_holm", "Significance", "paper p_corr",
+                    "r [95 % CI]", "median a − b [95 % CI]"]
+    # one p column of ours, the deciding one; the other is the paper's, named so
+    assert [c for c in head if c.startswith("p")] == ["p_holm", "paper p_corr"]
     assert len(lines) == 2 + 6
-    assert "Locomotion vs Minimum Energy" in lines[3] and "1.682e-5" in lines[3]
-    # x_f is constant per approach with a monotone shift: every user agrees
-    assert all("| Significant |" in ln for ln in lines[5:])
+    assert "Locomotion vs Minimum Energy" in lines[3] and "| 1.682e-5 |" in lines[3]
+    # x_f: every user agrees; 7 users decide by the exact p, 3 x 2/2^7 = 0.0469 < 0.05
+    for ln in lines[5:]:
+        assert "| 0.0469 | Significant |" in ln
+    assert note.startswith("p_holm: two-sided Wilcoxon signed-rank p, Holm-Bonferroni "
+                           "corrected over the metric's 3 pairs, computed from the exact "
+                           "distribution (7 users; exact up to 20 users")
+    assert "It alone decides" in note and "With 7 users no p_holm can be below 0.0469 (exact)" \
+        in note
+
+
+def test_the_deciding_p_is_exact_for_few_users_normal_for_many() -> None:
+    from mmctl.study.report import (
+        EXACT_MAX_USERS,
+        decides,
+        p_holm,
+        p_method,
+        smallest_p_holm,
+        summary,
+        values,
+    )
+    from mmctl.study.stats import analyse
+
+    assert smallest_p_holm(3, 3, "exact") == 0.75
+    assert f"{smallest_p_holm(3, 3, 'normal'):.3f}" == "0.326"
+    assert f"{smallest_p_holm(27, 3, 'normal'):.3e}" == "1.682e-05"  # the paper's floor
+    for n, method in ((7, "exact"), (EXACT_MAX_USERS, "exact"), (27, "normal")):
+        ex = _execs(n)
+        (ma,) = analyse(values(ex), ("x_f",))
+        assert p_method(ma, n) == method
+        doc = summary(ex, [ma], {})
+        for r in ma.pairwise:
+            pair = doc["pairwise"]["x_f"][f"{r.a} vs {r.b}"]
+            want = r.pvalue_exact_corrected if method == "exact" else r.pvalue_corrected
+            assert pair["p_holm"] == want == p_holm(r, method)
+            assert pair["p_holm_method"] == method
+            assert pair["significant"] == decides(r, method) == (want < 0.05)
+            assert pair["p_corr"] == r.pvalue_corrected  # both kept in summary.json
+            assert pair["p_exact_corr"] == r.pvalue_exact_corrected
+    # 7 users who all rank the approaches alike, no ties: the exact p (3 x 2/2^7 = 0.047)
+    # is significant, the normal approximation's (3 x 0.018 = 0.054) would not be
+    u = np.arange(7.0)
+    x = {"locomotion": {"x_f": 0.01 * u}, "switch": {"x_f": 0.01 * u + 0.1 + 0.001 * u},
+         "min-energy": {"x_f": 0.01 * u + 0.2 + 0.003 * u}}
+    (ma,) = analyse(x, ("x_f",))
+    assert p_method(ma, 7) == "exact"
+    assert all(decides(r, "exact") and not r.significant() for r in ma.pairwise)
+    assert [f"{r.pvalue_corrected:.3f}" for r in ma.pairwise] == ["0.054"] * 3
+    tab = significance_table([ma], 27)
+    assert "from the normal approximation without continuity correction" in tab
 
 
 def test_median_user_is_the_one_most_often_at_the_median() -> None:
@@ -81,7 +132,8 @@ def test_csv_is_sorted_and_stable() -> None:
     shuffled = [ex[i] for i in (4, 0, 8, 2, 7, 1, 3, 6, 5)]
     text = results_csv(ex)
     assert text.splitlines()[0] == ("user,strategy,E,F_h,v,x_f,T_f,x_f_hold,E_base,F_max,"
-                                    "switches,completed,faults,stopped")
+                                    "switches,completed,faults,stopped,limited,F_applied,"
+                                    "wall_clearance,E_base_near")
     rows = [ln.split(",")[:2] for ln in text.splitlines()[1:]]
     assert rows[:3] == [["0", "locomotion"], ["0", "switch"], ["0", "min-energy"]]
     assert results_csv(sorted(shuffled, key=lambda e: (e.user, STRATS.index(e.strategy)))) == text

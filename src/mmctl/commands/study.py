@@ -1,19 +1,18 @@
 """Reproduce the paper's peg-in-hole study in simulation.
 
-Every simulated user does the task with every approach, through the update the
-daemon's loop runs (tare and enable as operator commands, the safety state machine,
-the wrench pipeline from the sensor's reading, admittance, IDK, limits; T = 2 ms) on
-the simulated robot's plant, faster than real time and in
-parallel processes.
-Prints the median table next to the paper's and the significance table (Friedman,
-then Wilcoxon signed-rank with Holm-Bonferroni correction); writes results.csv,
-summary.json and the figures (boxplots.png, velocity.png, energy.png) into --out.
+Without ANALYSIS, runs the paper's experiment: every simulated user does the task with
+every approach, through the update the daemon's loop runs (tare and enable as operator
+commands, the safety state machine, the wrench pipeline from the sensor's reading,
+admittance, IDK, limits; T = 2 ms) on the simulated robot's plant, faster than real
+time and in parallel processes.  Prints the median table next to the paper's and the
+significance table (Friedman, then Wilcoxon signed-rank with Holm-Bonferroni
+correction: one p column, p_holm, decides); writes results.csv, summary.json and the
+figures (boxplots.png, velocity.png, energy.png) into --out.
 
   mmctl study                         # 27 users x (locomotion, switch, min-energy)
-  mmctl study --quick                 # 3 users, a two-hole task (a smoke test)
+  mmctl study --quick --jobs 1        # 3 users, a two-hole task (a smoke test)
   mmctl study --strategies locomotion switch min-energy constrained-min-energy
-  mmctl study sweep --quick --users 3         # the inertia-weighting sweep (sweep.csv/.png)
-  mmctl study sensitivity --trajectories 4    # Morris screening of the conclusions
+  mmctl study --seeds 10              # the study over 10 populations, claims tallied
 """
 
 from __future__ import annotations
@@ -55,7 +54,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="replicate the whole study over N populations (seeds SEED .. "
                    "SEED+N-1; each in OUT/seed-K) and report in how many each of the "
                    "paper's claims holds (OUT/replication.md, .json)")
+    # argparse writes a subcommand as "ANALYSIS ..." as if it were required; it is not.
+    # The usage is set after the subparsers exist: theirs start from the parent's usage.
+    options = p.format_usage().removeprefix("usage: ").rstrip()
     _add_analyses(p)
+    indent = " " * (len(p.prog) + len("usage: ") + 1)
+    p.usage = (options + f"\n{indent}[ANALYSIS [ANALYSIS's options]]").replace("%", "%%")
+    p.epilog = ANALYSES_EPILOG
+
+
+#: What `mmctl study --help` ends with: the analyses' example commands.
+ANALYSES_EPILOG = """\
+examples of the analyses (an analysis's options go after its name; mmctl study
+ANALYSIS --help lists them):
+  mmctl study sweep --quick --users 3 --jobs 1
+  mmctl study sensitivity --trajectories 2 --users 2 --factors human.speed layout.spread
+  mmctl study power --results study-out/results.csv
+"""
 
 
 class _Bar:
@@ -84,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
     from mmctl.study.executor import make_executor
     from mmctl.study.plots import write_figures
     from mmctl.study.report import (
+        conditions,
         friedman_table,
         median_ci_table,
         median_table,
@@ -115,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - wall0
     meta = {"users": study.users, "seed": study.seed, "strategies": list(study.strategies),
             "quick": study.quick, "dt": study.dt, "task": study.task,
-            "holes_approach": [[round(c, 4) for c in h.approach] for h in task.holes]}
+            "holes_approach": [[round(c, 4) for c in h.approach] for h in task.holes],
+            "conditions": conditions(study)}
     analysis, doc = write_outputs(args.out, res.executions, meta)
     figures = [] if args.no_figures else write_figures(res.executions, doc["median_user"],
                                                        args.out, doc)
@@ -131,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
     print(median_ci_table(analysis))
     print("\nWilcoxon signed-rank, Holm-Bonferroni corrected (alpha = 0.05), pairs tested "
           "only after a significant Friedman test; r: rank-biserial effect size:\n")
-    print(significance_table(analysis))
+    print(significance_table(analysis, study.users))
     if doc["incomplete"]:
         print(f"\nnot finished within {study.t_max:.0f} s: {', '.join(doc['incomplete'])}")
     sim_time = sum(e.T_f for e in res.executions)
@@ -151,7 +168,7 @@ def _replicate(args: argparse.Namespace) -> int:
     from mmctl.study.config import StudyConfig
     from mmctl.study.executor import make_executor
     from mmctl.study.replication import tally, tally_table
-    from mmctl.study.report import write_outputs
+    from mmctl.study.report import conditions, write_outputs
     from mmctl.study.runner import run_study
 
     seeds = list(range(args.seed, args.seed + args.seeds))
@@ -171,11 +188,12 @@ def _replicate(args: argparse.Namespace) -> int:
             res = run_study(study, progress=_Bar(n), executor=executor)
             cpu += res.cpu_time
             meta = {"users": study.users, "seed": seed, "strategies": list(study.strategies),
-                    "quick": study.quick, "dt": study.dt, "task": study.task}
+                    "quick": study.quick, "dt": study.dt, "task": study.task,
+                    "conditions": conditions(study)}
             analyses[seed], _doc = write_outputs(args.out / f"seed-{seed}", res.executions, meta)
     finally:
         executor.close()
-    rows = tally(analyses)
+    rows = tally(analyses, users=study.users)  # decided by the tables' own p_holm
     table = tally_table(rows, len(seeds))
     wall = time.perf_counter() - wall0
     head = (f"The paper's claims over {len(seeds)} simulated populations (seeds "
@@ -210,10 +228,12 @@ def _add_common(q: argparse.ArgumentParser, out: str, users_help: str) -> None:
 
 
 def _add_analyses(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="analysis", metavar="ANALYSIS",
-                           help="instead of one study: sweep or sensitivity")
+    sub = p.add_subparsers(dest="analysis", metavar="ANALYSIS", title="analyses (optional)",
+                           help="without one, the paper's experiment runs; with one, that "
+                           "analysis instead: sweep, sensitivity or power")
     sw = sub.add_parser(
-        "sweep", help="min-energy over the base's weight in M and the null-space projector",
+        "sweep", help="min-energy with the base's weight s*M_b in its IDK and either "
+        "null-space projector, Ē against x_f (sweep.csv, sweep.png)",
         description="The inertia-weighting sweep (mmctl.study.sweep): the min-energy IDK "
         "with the base's inertia scaled by s in its weighting and the dynamically "
         "consistent or the ordinary null-space projector, plus the coupled-inertia "
@@ -229,7 +249,8 @@ def _add_analyses(p: argparse.ArgumentParser) -> None:
                     help="skip the coupled-inertia ablation")
     sw.set_defaults(_run=run_sweep)
     se = sub.add_parser(
-        "sensitivity", help="Morris screening of the paper's claims (SALib)",
+        "sensitivity", help="Morris screening (SALib) of which factors (people, plant, "
+        "layout) move the paper's claims (sensitivity.csv, .json, .png)",
         description="Morris screening (mmctl.study.sensitivity): a small study per Morris "
         "point over the population's medians, the plant and the layout; per claim of the "
         "paper, the factors ranked by mu* and where in each range the claim holds. Writes "
@@ -243,12 +264,16 @@ def _add_analyses(p: argparse.ArgumentParser) -> None:
     se.add_argument("--full-task", action="store_true",
                     help="the full five-hole task per point (default: the quick task)")
     se.set_defaults(_run=run_sensitivity)
+    from mmctl.commands.study_power import add_parser as add_power
+
+    add_power(sub)
 
 
 def run_sweep(args: argparse.Namespace) -> int:
     from mmctl.errors import ConfigError
     from mmctl.study.config import StudyConfig
     from mmctl.study.executor import make_executor
+    from mmctl.study.report import conditions
     from mmctl.study.sweep import DEFAULT_SCALES, run_sweep, settings, sweep_table, write_sweep
 
     if args.jobs < 1:
@@ -268,7 +293,8 @@ def run_sweep(args: argparse.Namespace) -> int:
     finally:
         executor.close()
     wall = time.perf_counter() - wall0
-    meta = {"users": study.users, "seed": study.seed, "quick": study.quick}
+    meta = {"users": study.users, "seed": study.seed, "quick": study.quick, "task": study.task,
+            "conditions": conditions(study)}
     paths = write_sweep(args.out, res, meta, figure=not args.no_figures)
     print(f"\nInertia-weighting sweep, medians over {study.users} users:\n")
     print(sweep_table(res.rows))
@@ -286,6 +312,7 @@ def run_sensitivity(args: argparse.Namespace) -> int:
     from mmctl.errors import ConfigError
     from mmctl.study.config import StudyConfig
     from mmctl.study.executor import make_executor
+    from mmctl.study.report import conditions
     from mmctl.study.sensitivity import (
         FACTORS,
         TRAJECTORIES,
@@ -321,8 +348,13 @@ def run_sensitivity(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - wall0
     doc = analyse(factors, x, points, study.seed)
     doc.update({"trajectories": r, "users": study.users, "seed": study.seed,
-                "quick": study.quick, "points_n": len(x)})
-    paths = write_sensitivity(args.out, doc, figure=not args.no_figures)
+                "quick": study.quick, "task": study.task, "points_n": len(x),
+                "conditions": conditions(study)})
+    paths = write_sensitivity(args.out, doc, figure=False)
+    if not args.no_figures:  # the chart with its caption (n, conditions) from the document
+        from mmctl.study.plots import write_sensitivity_figure
+
+        paths.append(write_sensitivity_figure(doc, args.out / "sensitivity.png"))
     print(f"\nMorris screening of the paper's claims ({len(x)} points of {study.users} "
           f"users; a claim holds where |r| meets r_crit = {doc['r_crit']:.3f}):\n")
     print(sensitivity_table(doc))

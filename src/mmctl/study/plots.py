@@ -2,7 +2,7 @@
 
 * ``boxplots.png`` — the five metrics over the users, one box per approach (paper Fig. 5),
   the median a black line on every box, brackets with stars over the pairs summary.json
-  calls significant;
+  calls significant (by ``p_holm``, :mod:`mmctl.study.report`);
 * ``velocity.png`` — ||v(kT)|| of the median user, one panel per approach (Fig. 6);
 * ``energy.png`` — E_K(kT) of the median user, base share shaded (Fig. 7).
 
@@ -12,21 +12,39 @@ In the switch panels, locomotion phases are shaded.  The analyses' figures:
   (:func:`sweep_curve`, `mmctl study sweep`);
 * ``sensitivity.png`` — the Morris screening's μ* ranking per conclusion
   (:func:`sensitivity_chart`, `mmctl study sensitivity`).
-"""
 
+Every figure has a legend for each of its markers and shadings and a caption at its
+bottom (:data:`CAPTION_GID`): what it shows, n (users, executions) and the robot's
+conditions.  Each ``*_figure`` function returns the matplotlib Figure unsaved (the
+tests read its legends and caption); the others save it and close it.
+"""
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mmctl.study.report import strategies_of, values
+from mmctl.study.report import (
+    P_METHODS,
+    conditions_text,
+    smallest_p_holm,
+    strategies_of,
+    values,
+)
 from mmctl.study.results import APPROACH_NAMES, METRIC_LABELS, METRICS, Execution
+from mmctl.study.stats import ALPHA
 
 _COLOURS = ("tab:red", "tab:orange", "tab:green", "tab:blue", "tab:purple")
+#: The gid of every figure's caption (one of ``fig.texts``).
+CAPTION_GID = "caption"
+#: The caption's font size [pt].
+CAPTION_SIZE = 6.5
+#: The legend label of the shading in velocity.png and energy.png.
+LOCOMOTION_LABEL = "switch in its locomotion sub-mode (after a button press)"
 
 
 def _pyplot() -> Any:
@@ -46,41 +64,137 @@ def _save(fig: Any, path: Path) -> None:
     fig.savefig(path, dpi=110, metadata={"Software": None})
 
 
+def _close(fig: Any) -> None:
+    _pyplot().close(fig)
+
+
+def caption_of(fig: Any) -> str:
+    """The caption :func:`_layout` wrote into ``fig`` ("" if none), unwrapped."""
+    for t in fig.texts:
+        if t.get_gid() == CAPTION_GID:
+            return " ".join(str(t.get_text()).split())
+    return ""
+
+
+def _layout(fig: Any, caption: str, legend_rows: int = 0, top_in: float = 0.0) -> float:
+    """Grow ``fig`` by its caption (wrapped to the figure's width, small font) and
+    ``legend_rows`` rows of a figure legend above it, write the caption at the bottom,
+    lay the axes out above both (``top_in`` [in] kept free at the top); returns the
+    figure fraction where the legend's band starts."""
+    width = max(60, int(fig.get_figwidth() * 72.0 / (0.56 * CAPTION_SIZE)))
+    lines: list[str] = []
+    for para in caption.split("\n"):
+        lines += textwrap.wrap(para, width) or [""]
+    cap_h = len(lines) * CAPTION_SIZE * 1.3 / 72.0 + 0.12  # [in]
+    leg_h = 0.22 * legend_rows + (0.1 if legend_rows else 0.0)
+    h = float(fig.get_figheight()) + cap_h + leg_h + top_in
+    fig.set_figheight(h)
+    fig.text(0.008, 0.06 / h, "\n".join(lines), ha="left", va="bottom", fontsize=CAPTION_SIZE,
+             color="0.2", gid=CAPTION_GID)
+    fig.tight_layout(rect=(0.0, (cap_h + leg_h) / h, 1.0, 1.0 - top_in / h))
+    return cap_h / h
+
+
+def _setting(doc: Mapping[str, Any] | None) -> str:
+    """", seed 0, quick wall task" from a summary or meta document (what it has)."""
+    if not doc:
+        return ""
+    out = ""
+    if doc.get("seed") is not None:
+        out += f", seed {doc['seed']}"
+    if "quick" in doc:
+        out += f", {'quick' if doc['quick'] else 'full'} {doc.get('task', 'wall')} task"
+    return out
+
+
 def _stars(p: float) -> str:
     """Significance stars of a Holm-corrected p-value: * < 0.05, ** < 0.01, *** < 0.001."""
     return "***" if p < 0.001 else "**" if p < 0.01 else "*"
 
 
+def _p_holm(r: Mapping[str, Any]) -> float | None:
+    """A pair's deciding p in summary.json (``p_holm``; ``p_corr`` in a summary written
+    before ``p_holm`` existed, which decided by it)."""
+    p = r.get("p_holm", r.get("p_corr"))
+    return None if p is None else float(p)
+
+
 def significance_marks(summary: Mapping[str, Any] | None, metric: str,
                        names: Sequence[str]) -> list[tuple[str, str, str]]:
     """The pairs of ``metric`` that ``summary`` (summary.json's document) calls
-    significant (Holm-corrected, after a significant Friedman test), as (a, b, stars),
-    for the approaches in ``names``; in summary.json's pair order."""
+    significant (``p_holm``, after a significant Friedman test), as (a, b, stars by
+    ``p_holm``), for the approaches in ``names``; in summary.json's pair order."""
     if not summary:
         return []
     out = []
     for key, r in (summary.get("pairwise", {}).get(metric, {}) or {}).items():
         a, _, b = key.partition(" vs ")
-        if a in names and b in names and r.get("significant") and r.get("p_corr") is not None:
-            out.append((a, b, _stars(float(r["p_corr"]))))
+        p = _p_holm(r)
+        if a in names and b in names and r.get("significant") and p is not None:
+            out.append((a, b, _stars(p)))
     return out
 
 
-def boxplots(execs: Sequence[Execution], path: Path,
-             summary: Mapping[str, Any] | None = None) -> list[tuple[str, str, str, str]]:
-    """Fig. 5: one panel per metric, one box per approach; the median a black line on
-    every box; with ``summary`` (summary.json's document) a bracket with stars over
-    every pair it calls significant.  Returns the marks drawn: (metric, a, b, stars)."""
+def _floor_text(users: int, pairs: int, method: str) -> str:
+    how = (f"exact: {pairs} × 2/2^{users}" if method == "exact"
+           else f"normal approximation: {pairs} × the tail at z = "
+           f"{math.sqrt(3.0 * users * (users + 1) / (2.0 * (2 * users + 1))):.2f}")
+    return f"{smallest_p_holm(users, pairs, method):.3g} ({how})"
+
+
+def _boxplot_caption(n_users: int, names: Sequence[str], summary: Mapping[str, Any] | None,
+                     marks: Sequence[tuple[str, str, str, str]]) -> str:
+    k = len(names)
+    what = (f"The paper's Fig. 5 in simulation: one panel per metric, one box per approach "
+            f"over n = {n_users} users (every user did every approach: {n_users} × {k} = "
+            f"{n_users * k} executions{_setting(summary)}).")
+    if not summary:
+        return what + " No significance marks: drawn without summary.json."
+    fams = {m: list((summary.get("pairwise", {}).get(m) or {}).values()) for m in METRICS}
+    fams = {m: rs for m, rs in fams.items() if rs}
+    methods = {m: str(rs[0].get("p_holm_method", "normal")) for m, rs in fams.items()}
+    floors = {m: smallest_p_holm(n_users, len(rs), methods[m]) for m, rs in fams.items()}
+    one = len(set(methods.values())) == 1 and len({len(rs) for rs in fams.values()}) == 1
+    how = (f"two-sided Wilcoxon signed-rank, {P_METHODS[next(iter(methods.values()))]}, "
+           f"Holm-corrected over the metric's {len(next(iter(fams.values())))} pairs"
+           if one and fams else "two-sided Wilcoxon signed-rank, Holm-corrected")
+    if fams and all(f >= ALPHA for f in floors.values()):
+        m0 = next(iter(fams))
+        floor = (_floor_text(n_users, len(fams[m0]), methods[m0]) if one else
+                 ", ".join(f"{METRIC_LABELS[m]} {f:.3g}" for m, f in floors.items()))
+        sig = (f" No brackets can appear: with n = {n_users} users the smallest p_holm "
+               f"({how}) any pair can reach is {floor}, not below {ALPHA:g}.")
+    else:
+        sig = (f" Brackets: the pairs with p_holm < {ALPHA:g} ({how}), tested only after "
+               f"a significant Friedman test of the metric; stars * < 0.05, ** < 0.01, "
+               f"*** < 0.001; "
+               + ("no pair is significant in any panel." if not marks else
+                  "a panel without a bracket has no significant pair."))
+    cond = conditions_text(summary.get("conditions"))
+    return what + sig + (" " + cond if cond else "")
+
+
+def boxplots_figure(execs: Sequence[Execution], summary: Mapping[str, Any] | None = None
+                    ) -> tuple[Any, list[tuple[str, str, str, str]]]:
+    """Fig. 5, unsaved: one panel per metric, one box per approach; the median a black
+    line on every box; with ``summary`` (summary.json's document) a bracket with stars
+    over every pair it calls significant; a legend of the box's parts and a caption.
+    Returns the figure and the marks drawn: (metric, a, b, stars)."""
     plt = _pyplot()
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     vals = values(execs)
     names = list(vals)
     marks: list[tuple[str, str, str, str]] = []
+    fliers = False
     fig, axes = plt.subplots(1, len(METRICS), figsize=(3.1 * len(METRICS), 4.0))
     for ax, m in zip(axes, METRICS):
         data = [vals[s][m] for s in names]
         bp = ax.boxplot(data, patch_artist=True, widths=0.6,
                         medianprops={"color": "black", "linewidth": 2.2, "zorder": 4},
                         flierprops={"markersize": 4})
+        fliers = fliers or any(len(f.get_xdata()) for f in bp["fliers"])
         for patch, c in zip(bp["boxes"], _COLOURS):
             patch.set_facecolor(c)
             patch.set_alpha(0.45)
@@ -108,41 +222,70 @@ def boxplots(execs: Sequence[Execution], path: Path,
             marks += [(m, a, b, stars) for a, b, stars in pairs]
             ax.set_ylim(top=hi + step * (0.9 + len(pairs)))
     n_users = len(next(iter(vals.values()))["E"]) if vals else 0
-    note = ("  (brackets: Wilcoxon, Holm-corrected, after a significant Friedman test; "
-            "* p < 0.05, ** < 0.01, *** < 0.001)" if summary else "")
-    fig.suptitle(f"Peg-in-hole study, {n_users} simulated users{note}", fontsize=10)
-    fig.tight_layout()
+    fig.suptitle(f"Peg-in-hole study: {n_users} simulated users × {len(names)} approaches",
+                 fontsize=10)
+    handles = [Line2D([], [], color="black", lw=2.2, label="median"),
+               Patch(facecolor="0.8", edgecolor="black", label="box: quartiles (middle half)"),
+               Line2D([], [], color="black", lw=1.0,
+                      label="whiskers: furthest user within 1.5 box heights of the box")]
+    if fliers:
+        handles.append(Line2D([], [], ls="none", marker="o", mfc="none", mec="black", ms=4,
+                              label="a user beyond the whiskers"))
+    if marks:
+        handles.append(Line2D([], [], color="black", lw=0.9,
+                              label=f"bracket: p_holm < {ALPHA:g} (stars: * < 0.05, "
+                              "** < 0.01, *** < 0.001)"))
+    band = _layout(fig, _boxplot_caption(n_users, names, summary, marks), legend_rows=1)
+    fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, band),
+               ncol=len(handles), fontsize=7, frameon=False)
+    return fig, marks
+
+
+def boxplots(execs: Sequence[Execution], path: Path,
+             summary: Mapping[str, Any] | None = None) -> list[tuple[str, str, str, str]]:
+    """Fig. 5 (:func:`boxplots_figure`) into ``path``.  Returns the marks drawn:
+    (metric, a, b, stars)."""
+    fig, marks = boxplots_figure(execs, summary)
     _save(fig, path)
-    plt.close(fig)
+    _close(fig)
     return marks
 
 
-def _shade_locomotion(ax: Any, e: Execution) -> None:
+def _shade_locomotion(ax: Any, e: Execution) -> bool:
+    """Shade ``e``'s locomotion phases (gid "locomotion"); whether there were any."""
     loc = e.series.locomotion.astype(bool)
     if not loc.any():
-        return
+        return False
     t = e.series.t
     edges = np.flatnonzero(np.diff(np.concatenate(([0], loc.astype(np.int8), [0]))))
     for a, b in zip(edges[::2], edges[1::2]):
-        ax.axvspan(float(t[a]), float(t[min(b, len(t) - 1)]), color="0.85", zorder=0)
+        ax.axvspan(float(t[a]), float(t[min(b, len(t) - 1)]), color="0.85", zorder=0,
+                   gid="locomotion")
+    return True
 
 
-def time_series(execs: Sequence[Execution], user: int, path: Path, what: str) -> None:
-    """Fig. 6 (``what="speed"``) or Fig. 7 (``what="energy"``) for ``user``."""
+def time_series_figure(execs: Sequence[Execution], user: int, what: str,
+                       summary: Mapping[str, Any] | None = None) -> Any:
+    """Fig. 6 (``what="speed"``) or Fig. 7 (``what="energy"``) for ``user``, unsaved,
+    with a legend below the panels (the curve; the base's share; the switch approach's
+    locomotion phases, when there are any) and a caption; ``summary`` (summary.json's
+    document): the setting and conditions for the caption."""
     plt = _pyplot()
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     names = strategies_of(execs)
     rows = {e.strategy: e for e in execs if e.user == user}
     fig, axes = plt.subplots(len(names), 1, figsize=(8.0, 1.9 * len(names) + 0.6), sharex=True,
                              squeeze=False)
     ymax = max(float(np.max(getattr(rows[s].series, what), initial=0.0)) for s in names)
+    shaded = False
     for ax, s, c in zip(axes[:, 0], names, _COLOURS):
         e = rows[s]
-        _shade_locomotion(ax, e)
+        shaded = _shade_locomotion(ax, e) or shaded
         ax.plot(e.series.t, getattr(e.series, what), color=c, lw=0.9)
         if what == "energy":
-            ax.fill_between(e.series.t, 0.0, e.series.energy_base, color=c, alpha=0.25, lw=0,
-                            label="base share")
-            ax.legend(loc="upper right", fontsize=7)
+            ax.fill_between(e.series.t, 0.0, e.series.energy_base, color=c, alpha=0.25, lw=0)
         ax.set_ylim(0.0, 1.05 * ymax if ymax > 0 else 1.0)
         ax.set_ylabel("‖v‖ [m/s]" if what == "speed" else "E_K [J]")
         ax.set_title(f"{APPROACH_NAMES.get(s, s)}  (T_f = {e.T_f:.1f} s)", fontsize=9)
@@ -150,28 +293,62 @@ def time_series(execs: Sequence[Execution], user: int, path: Path, what: str) ->
     axes[-1, 0].set_xlabel("t [s]")
     title = "End-effector speed" if what == "speed" else "Total kinetic energy"
     fig.suptitle(f"{title}, median user #{user}")
-    fig.tight_layout()
+    handles: list[Any] = [Line2D([], [], color=_COLOURS[0], lw=0.9, label=(
+        "end-effector speed ‖v‖" if what == "speed" else "E_K, whole body")
+        + " (in each panel its approach's colour)")]
+    if what == "energy":
+        handles.append(Patch(facecolor=_COLOURS[0], alpha=0.25, lw=0,
+                             label="the base's share of E_K (filled)"))
+    if shaded:
+        handles.append(Patch(facecolor="0.85", label=LOCOMOTION_LABEL))
+    n_users = len({e.user for e in execs})
+    peak = max(float(np.max(rows[s].series.energy, initial=0.0)) for s in names)
+    shown = ("The end-effector's linear speed ‖v(kT)‖ (the paper's Fig. 6)" if what == "speed"
+             else "The whole-body kinetic energy E_K(kT) = ½ q̇ᵀ M q̇ (block-diagonal M; "
+             "the paper's Fig. 7), the base's share filled")
+    shade = (f"grey: {LOCOMOTION_LABEL}" if shaded else
+             "no locomotion phase to shade for this user" if "switch" in names else "")
+    caption = (f"{shown}, of the median user #{user}, one panel per approach"
+               + (f"; {shade}" if shade else "") + ". The median user is the one most often "
+               f"nearest the median over the approaches and the paper's five metrics, of "
+               f"n = {n_users} users × {len(names)} approaches = {n_users * len(names)} "
+               f"executions{_setting(summary)}. Peak E_K of these {len(names)} executions: "
+               f"{peak:.3g} J.")
+    cond = conditions_text((summary or {}).get("conditions"))
+    band = _layout(fig, caption + (" " + cond if cond else ""),
+                   legend_rows=1 if len(handles) <= 2 else 2)
+    fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, band), ncol=2,
+               fontsize=7, frameon=False)
+    return fig
+
+
+def time_series(execs: Sequence[Execution], user: int, path: Path, what: str,
+                summary: Mapping[str, Any] | None = None) -> None:
+    """Fig. 6 or 7 (:func:`time_series_figure`) into ``path``."""
+    fig = time_series_figure(execs, user, what, summary)
     _save(fig, path)
-    plt.close(fig)
+    _close(fig)
 
 
 def write_figures(execs: Sequence[Execution], user: int, out: Path,
                   summary: Mapping[str, Any] | None = None) -> list[Path]:
     """All three figures into ``out`` (the boxplots with ``summary``'s significance
-    marks); returns their paths."""
+    marks; its setting and conditions in every caption); returns their paths."""
     paths = [out / "boxplots.png", out / "velocity.png", out / "energy.png"]
     boxplots(execs, paths[0], summary)
-    time_series(execs, user, paths[1], "speed")
-    time_series(execs, user, paths[2], "energy")
+    time_series(execs, user, paths[1], "speed", summary)
+    time_series(execs, user, paths[2], "energy", summary)
     return paths
 
 
-def sweep_curve(rows: Sequence[Any], path: Path, meta: Mapping[str, Any] | None = None) -> None:
-    """The inertia-weighting sweep (``rows``: :class:`mmctl.study.sweep.SweepRow`): left,
+def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> Any:
+    """The inertia-weighting sweep, unsaved (``rows``: :class:`mmctl.study.sweep.SweepRow`;
+    ``meta``: users, seed, quick, task, conditions for the title and caption): left,
     median Ē against median x_f, one curve per projector through the base scales
     (labelled), the paper's point (s = 1, dynamically consistent) starred, the coupled
-    ablation as diamonds and the locomotion approach as a square; right, the median
-    fraction of samples on which a limit bound the command, against the scale."""
+    ablation as diamonds, the locomotion approach as a square and a setting that
+    dominates the paper's point ringed; right, the median fraction of samples on which
+    a limit bound the command, against the scale."""
     plt = _pyplot()
     fig, (ax, axl) = plt.subplots(1, 2, figsize=(12.0, 4.8),
                                   gridspec_kw={"width_ratios": [1.6, 1.0]})
@@ -196,6 +373,7 @@ def sweep_curve(rows: Sequence[Any], path: Path, meta: Mapping[str, Any] | None 
                         textcoords="offset points", xytext=(5, 4), fontsize=7, color=c)
         axl.plot([r.setting.base_scale for r in rs], [100 * r.limited for r in rs], "o-",
                  color=c, ms=4, lw=1.2, label=proj)
+    ringed = False
     for r in rows:
         s = r.setting
         if s is None:
@@ -211,7 +389,10 @@ def sweep_curve(rows: Sequence[Any], path: Path, meta: Mapping[str, Any] | None 
             ax.plot(r.x_f, r.E, "*", color="black", ms=15, zorder=5,
                     label="the paper's min-energy (s = 1, dynamic)")
         if s is not None and r.dominates:
-            ax.plot(r.x_f, r.E, "o", mfc="none", mec="gold", ms=13, mew=2, zorder=6)
+            ax.plot(r.x_f, r.E, "o", mfc="none", mec="gold", ms=13, mew=2, zorder=6,
+                    label="_nolegend_" if ringed else "dominates the paper's point "
+                    "(lower median Ē and x_f)")
+            ringed = True
     ax.set_xlabel("median x_f [m]")
     ax.set_ylabel("median Ē [J]")
     ax.set_title("Ē–x_f over the base's weight s·M_b in the IDK", fontsize=10)
@@ -223,35 +404,79 @@ def sweep_curve(rows: Sequence[Any], path: Path, meta: Mapping[str, Any] | None 
     axl.set_title("How often the limits bind", fontsize=10)
     axl.grid(alpha=0.3)
     axl.legend(fontsize=7, loc="best")
+    users = (meta or {}).get("users")
     if meta:
-        fig.suptitle(f"Inertia-weighting sweep: {meta.get('users')} users, seed "
+        fig.suptitle(f"Inertia-weighting sweep: {users} users, seed "
                      f"{meta.get('seed')}, {'quick' if meta.get('quick') else 'full'} task",
                      fontsize=10)
-    fig.tight_layout()
+    n = (f"n = {users} users: {len(rows)} settings (locomotion included) × {users} users = "
+         f"{len(rows) * int(users)} executions{_setting(meta)}" if users is not None
+         else f"{len(rows)} settings; n (users) not given")
+    caption = ("Left: each point the medians over the users of one setting of the min-energy "
+               "IDK, the base's inertia weighted s·M_b in its solution (Ē is measured with "
+               "the true block-diagonal M throughout), with the dynamically consistent or "
+               "the ordinary null-space projector; dashed, hollow: the same settings' x_f "
+               "after the end-of-trial hold. Right: the median user's share of samples on "
+               f"which a limit bound the command. {n}.")
+    cond = conditions_text((meta or {}).get("conditions"))
+    _layout(fig, caption + (" " + cond if cond else ""))
+    return fig
+
+
+def sweep_curve(rows: Sequence[Any], path: Path, meta: Mapping[str, Any] | None = None) -> None:
+    """The inertia-weighting sweep (:func:`sweep_figure`) into ``path``."""
+    fig = sweep_figure(rows, meta)
     _save(fig, path)
-    plt.close(fig)
+    _close(fig)
 
 
-def sensitivity_chart(claims: Sequence[Mapping[str, Any]], path: Path,
-                      title: str = "") -> None:
-    """Morris screening: one panel per conclusion, the factors ranked by μ* (bars,
-    normalised to the panel's largest; σ as a black tick), the bars coloured by the
-    share of the Morris points at which the conclusion holds, and at the panel's right
-    edge one square per level of the factor (low to high): filled where the conclusion
-    holds at most of that level's points.
+def sensitivity_caption(doc: Mapping[str, Any]) -> str:
+    """The sensitivity chart's caption from sensitivity.json's document (with the
+    ``users``, ``points_n``, ``strategies``, ``r_crit`` and ``conditions`` that `mmctl
+    study sensitivity` records)."""
+    users, points = doc.get("users"), doc.get("points_n", len(doc.get("points", [])))
+    k = len(doc.get("strategies") or ()) or 3
+    claims = doc.get("claims", [])
+    n = (f"n = {users} users per point: {points} Morris points × {users} users × {k} "
+         f"approaches = {int(points) * int(users) * k} executions" if users and points
+         else "n (users) not recorded")
+    r_crit = doc.get("r_crit")
+    held = (f"; a claim holds at a point where the rank-biserial r of its users' paired "
+            f"differences meets r_crit = {float(r_crit):.3f}" if r_crit is not None else "")
+    caption = (f"Morris screening of the paper's {len(claims)} claims, one panel each, over "
+               f"{len(doc.get('factors', []))} factors ({n}{_setting(doc)}){held}. Bars: "
+               "μ*, the mean |elementary effect| of the factor on the claim's median paired "
+               "difference, relative to the panel's largest.")
+    cond = conditions_text(doc.get("conditions"))
+    return caption + (" " + cond if cond else "")
+
+
+def sensitivity_figure(claims: Sequence[Mapping[str, Any]], title: str = "",
+                       caption: str | None = None) -> Any:
+    """Morris screening, unsaved: one panel per conclusion, the factors ranked by μ*
+    (bars, normalised to the panel's largest; σ as a black tick), the bars coloured by
+    the share of the Morris points at which the conclusion holds (colour bar), and at
+    the panel's right edge one square per level of the factor (low to high): filled
+    where the conclusion holds at most of that level's points; a legend of these marks
+    and ``caption`` (:func:`sensitivity_caption`; without one, a note that n is not
+    known) at the bottom.
 
     ``claims``: one mapping per conclusion with ``claim`` (text) and ``factors`` (a list
     of mappings with ``name``, ``mu_star``, ``sigma``, ``holds`` in [0, 1] and
     optionally ``holds_by_level``: [value, held, points] per level)."""
     plt = _pyplot()
     from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     cmap = colormaps["RdYlGn"]
     n = len(claims)
     cols = 3 if n >= 3 else max(n, 1)
     nrows = max(1, -(-n // cols))
     k = max((len(c["factors"]) for c in claims), default=1)
-    fig, axes = plt.subplots(nrows, cols, figsize=(5.2 * cols, 0.22 * k * nrows + 1.2 * nrows + 0.8),
+    fig, axes = plt.subplots(nrows, cols, figsize=(5.2 * cols, 0.22 * k * nrows + 1.2 * nrows + 0.4),
                              squeeze=False)
     for ax, c in zip(axes.ravel(), claims):
         fs = sorted(c["factors"], key=lambda f: f["mu_star"])
@@ -274,12 +499,50 @@ def sensitivity_chart(claims: Sequence[Mapping[str, Any]], path: Path,
         ax.grid(axis="x", alpha=0.3)
     for ax in axes.ravel()[n:]:
         ax.set_visible(False)
-    text = ((title + "\n" if title else "") + "μ* / max μ* (bars), σ / max μ* (ticks); "
-            "colour: share of points where the conclusion holds (red 0 → green 1)\n"
-            "■/□ per level of the factor, low → high: holds / not at most points")
-    fig.suptitle(text, fontsize=9)
-    # the panels below the title's lines (tight_layout alone let them overlap)
-    top = 1.0 - (0.17 * (text.count("\n") + 1) + 0.15) / fig.get_figheight()
-    fig.tight_layout(rect=(0.0, 0.0, 1.0, top))
+    if title:
+        fig.suptitle(title, fontsize=9)
+    if caption is None:
+        caption = (f"Morris screening of {n} claims; n (users, executions) not given to the "
+                   "chart: see sensitivity.json.")
+    handles = [
+        Patch(facecolor="0.75", edgecolor="0.3", lw=0.5,
+              label="bar: μ* / the panel's largest μ* (colour: share of points where the "
+              "claim holds, scale at right)"),
+        Line2D([], [], ls="none", marker="|", color="black", ms=8,
+               label="σ / the panel's largest μ* (how much the effect depends on the "
+               "other factors)"),
+        Line2D([], [], ls="none", marker="s", color="0.2", ms=5,
+               label="right edge, one per level of the factor (low → high): the claim "
+               "holds at most of its points"),
+        Line2D([], [], ls="none", marker="s", mfc="none", mec="0.2", ms=5,
+               label="... it does not"),
+    ]
+    band = _layout(fig, caption, legend_rows=2, top_in=0.15 if title else 0.0)
+    fig.legend(handles=handles, loc="lower left", bbox_to_anchor=(0.01, band), ncol=2,
+               fontsize=7, frameon=False)
+    h = float(fig.get_figheight())
+    cax = fig.add_axes((0.74, band + 0.14 / h, 0.22, 0.09 / h))
+    bar = fig.colorbar(ScalarMappable(norm=Normalize(0.0, 1.0), cmap=cmap), cax=cax,
+                       orientation="horizontal")
+    bar.set_label("bar colour: share of the points where the claim holds", fontsize=7)
+    cax.xaxis.set_label_position("top")
+    bar.ax.tick_params(labelsize=6)
+    return fig
+
+
+def sensitivity_chart(claims: Sequence[Mapping[str, Any]], path: Path,
+                      title: str = "", caption: str | None = None) -> None:
+    """The Morris screening's chart (:func:`sensitivity_figure`) into ``path``."""
+    fig = sensitivity_figure(claims, title, caption)
     _save(fig, path)
-    plt.close(fig)
+    _close(fig)
+
+
+def write_sensitivity_figure(doc: Mapping[str, Any], path: Path) -> Path:
+    """sensitivity.png from sensitivity.json's document (``doc``), its title and caption
+    from what the document records; returns ``path``.  Also redraws a chart from a
+    stored sensitivity.json."""
+    title = (f"Morris screening: {doc.get('trajectories')} trajectories, "
+             f"{doc.get('users')} users per point, seed {doc.get('seed')}")
+    sensitivity_chart(doc["claims"], path, title, sensitivity_caption(doc))
+    return path

@@ -51,9 +51,14 @@ def paper_claims(alpha: float = ALPHA) -> list[Claim]:
     return out
 
 
-def holds(claim: Claim, analysis: Sequence[MetricAnalysis], alpha: float = ALPHA) -> bool | None:
+def holds(claim: Claim, analysis: Sequence[MetricAnalysis], alpha: float = ALPHA,
+          users: int | None = None) -> bool | None:
     """Whether ``claim`` holds in one study's ``analysis`` (None: the study lacks the
-    metric or the pair)."""
+    metric or the pair).  ``users``: the study's users, to decide with the tables' own
+    p_holm (:func:`mmctl.study.report.decides`: exact up to 20 users); None: the normal
+    approximation's Holm p."""
+    from mmctl.study.report import decides, p_method
+
     for ma in analysis:
         if ma.metric != claim.metric:
             continue
@@ -63,18 +68,21 @@ def holds(claim: Claim, analysis: Sequence[MetricAnalysis], alpha: float = ALPHA
             sign = 1 if (r.a, r.b) == (claim.a, claim.b) else -1
             d = sign * r.diff_median
             direction = 1 if d > 0 else -1 if d < 0 else 0
+            sig = (r.significant(alpha) if users is None
+                   else decides(r, p_method(ma, users), alpha))
             if not claim.differ:
-                return not r.significant(alpha)
-            return r.significant(alpha) and direction == claim.direction
+                return not sig
+            return sig and direction == claim.direction
     return None
 
 
 def tally(analyses: Mapping[int, Sequence[MetricAnalysis]],
-          alpha: float = ALPHA) -> list[dict[str, Any]]:
-    """Per claim: the seeds where it holds and where it does not."""
+          alpha: float = ALPHA, users: int | None = None) -> list[dict[str, Any]]:
+    """Per claim: the seeds where it holds and where it does not (``users``: see
+    :func:`holds`)."""
     rows = []
     for c in paper_claims(alpha):
-        verdicts = {seed: holds(c, a, alpha) for seed, a in analyses.items()}
+        verdicts = {seed: holds(c, a, alpha, users) for seed, a in analyses.items()}
         rows.append({
             "claim": c.text(), "metric": c.metric, "a": c.a, "b": c.b,
             "paper_p_corr": PAPER_PCORR[c.metric][(c.a, c.b)],

@@ -1,5 +1,14 @@
 """Tables and files of the study: medians next to the paper's, the significance table,
-``results.csv`` and ``summary.json``."""
+``results.csv`` and ``summary.json``; the conditions the study's robot runs with.
+
+**The deciding p** (``p_holm``; the table's one p column, summary.json's ``significant``
+and the boxplots' brackets): each pair's two-sided Wilcoxon signed-rank p,
+Holm-Bonferroni corrected over its metric's pairs, from the **exact** distribution for
+at most :data:`EXACT_MAX_USERS` users (when every pair of the family has one), else from
+the **normal approximation** without continuity correction (the paper's, for its 27
+users).  A pair is significant when the metric's Friedman test is and ``p_holm`` <
+alpha.  :mod:`mmctl.study.stats` computes both values; this module only chooses.
+"""
 
 from __future__ import annotations
 
@@ -7,9 +16,9 @@ import csv
 import io
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -24,7 +33,22 @@ from mmctl.study.results import (
     Execution,
     csv_row,
 )
-from mmctl.study.stats import ALPHA, MetricAnalysis, analyse
+from mmctl.study.stats import ALPHA, MetricAnalysis, PairwiseResult, analyse
+
+if TYPE_CHECKING:
+    from mmctl.study.config import StudyConfig
+
+#: Up to this many users the deciding p (``p_holm``) comes from the exact distribution
+#: of the Wilcoxon statistic; above it from the normal approximation.  scipy's
+#: documentation of ``wilcoxon`` (0.7-1.2) gave the rule for the approximation: "A
+#: typical rule is to require that n > 20"; the paper's 27 users are above it, so its
+#: table is computed as the paper computed it.
+EXACT_MAX_USERS = 20
+#: How ``p_holm`` was computed, as the table's note and summary.json name it.
+P_METHODS: dict[str, str] = {
+    "exact": "exact distribution",
+    "normal": "normal approximation without continuity correction",
+}
 
 
 def strategies_of(execs: Sequence[Execution]) -> list[str]:
@@ -110,31 +134,90 @@ def _ci(lo: float, hi: float) -> str:
     return f"[{_fmt(lo)}, {_fmt(hi)}]"
 
 
-def significance_table(analysis: Sequence[MetricAnalysis], alpha: float = ALPHA) -> str:
-    """Markdown table in the paper's Table IV format (p_corr by the normal approximation,
-    as the paper), with the exact p_corr, the effect size (rank-biserial r, positive:
-    the first approach higher) and the median paired difference with their bootstrap
-    95 % intervals, and the paper's p_corr alongside.  A pair is "Significant" only
-    after a significant Friedman test of its metric ("not tested" otherwise)."""
+def p_method(ma: MetricAnalysis, users: int) -> str:
+    """How ``ma``'s deciding p is computed: "exact" for at most :data:`EXACT_MAX_USERS`
+    ``users`` when every pair of the family has its exact p, else "normal"."""
+    if users <= EXACT_MAX_USERS and ma.pairwise and all(
+            math.isfinite(r.pvalue_exact_corrected) for r in ma.pairwise):
+        return "exact"
+    return "normal"
+
+
+def p_holm(r: PairwiseResult, method: str) -> float:
+    """The deciding Holm-corrected p of the pair ``r`` by ``method`` (:func:`p_method`)."""
+    return r.pvalue_exact_corrected if method == "exact" else r.pvalue_corrected
+
+
+def decides(r: PairwiseResult, method: str, alpha: float = ALPHA) -> bool:
+    """Whether the pair is significant: its Friedman test allows it and its ``p_holm``
+    by ``method`` is below ``alpha``."""
+    return r.gated and p_holm(r, method) < alpha
+
+
+def smallest_p_holm(users: int, pairs: int, method: str) -> float:
+    """The smallest ``p_holm`` any pair of a family of ``pairs`` can reach with ``users``
+    users (all ranking the pair the same way; no zero differences): Holm's first step,
+    ``pairs`` x the smallest two-sided p, ``2 / 2^n`` exactly, or the normal tail at
+    ``z = sqrt(3 n (n + 1) / (2 (2 n + 1)))`` (n = 27: 3 x 5.606e-6 = 1.682e-5)."""
+    n = max(users, 1)
+    if method == "exact":
+        p = 2.0 ** (1 - n)
+    else:
+        p = math.erfc(math.sqrt(3.0 * n * (n + 1) / (2.0 * (2 * n + 1))) / math.sqrt(2.0))
+    return min(1.0, pairs * p)
+
+
+def p_note(analysis: Sequence[MetricAnalysis], users: int, alpha: float = ALPHA) -> str:
+    """The line under the significance table: how ``p_holm`` was computed, what it
+    decides and the smallest value ``users`` users allow."""
+    by: dict[str, list[str]] = {}
+    for ma in analysis:
+        by.setdefault(p_method(ma, users), []).append(METRIC_LABELS.get(ma.metric, ma.metric))
+    pairs = max((len(ma.pairwise) for ma in analysis), default=0)
+    rule = f"exact up to {EXACT_MAX_USERS} users, above that the paper's normal approximation"
+    if len(by) == 1 and "exact" in by:
+        how = f"computed from the {P_METHODS['exact']} ({users} users; {rule})"
+    elif len(by) == 1:
+        how = f"computed from the {P_METHODS['normal']} ({users} users; {rule})"
+    else:  # few users, but some metric without an exact p
+        how = "computed " + "; ".join(f"from the {P_METHODS[m]} for {', '.join(ms)}"
+                                      for m, ms in by.items()) + f" (no exact p there; {rule})"
+    floors = " or ".join(f"{_fmt_p(smallest_p_holm(users, pairs, m))} ({m})" for m in by)
+    return (f"p_holm: two-sided Wilcoxon signed-rank p, Holm-Bonferroni corrected over the "
+            f"metric's {pairs} pairs, {how}. It alone decides: Significant = p_holm < "
+            f"{alpha:g} after a significant Friedman test. With {users} users no p_holm can "
+            f"be below {floors}. summary.json keeps both corrected values besides p_holm "
+            "(p_corr: normal approximation, p_exact_corr: exact).")
+
+
+def significance_table(analysis: Sequence[MetricAnalysis], users: int,
+                       alpha: float = ALPHA) -> str:
+    """Markdown table in the paper's Table IV format with one p column, ``p_holm``, the
+    one that decides (:func:`p_method`), the effect size (rank-biserial r, positive: the
+    first approach higher) and the median paired difference with their bootstrap 95 %
+    intervals, and the paper's p_corr alongside; then the note saying how ``p_holm``
+    was computed (:func:`p_note`).  ``users``: the number of users (pairs per test).
+    A pair is "Significant" only after a significant Friedman test of its metric ("Not
+    tested" otherwise)."""
     lines = [
-        ("| Metric | Comparison | p_corr | Significance | paper p_corr | p_corr exact "
-        "| r [95 % CI] | median a − b [95 % CI] |"),
-        "|---|---|---:|---|---:|---:|---|---|",
+        ("| Metric | Comparison | p_holm | Significance | paper p_corr | r [95 % CI] "
+         "| median a − b [95 % CI] |"),
+        "|---|---|---:|---|---:|---|---|",
     ]
     for ma in analysis:
+        method = p_method(ma, users)
         for r in ma.pairwise:
             paper = PAPER_PCORR.get(ma.metric, {}).get((r.a, r.b))
             cmp_ = f"{APPROACH_NAMES.get(r.a, r.a)} vs {APPROACH_NAMES.get(r.b, r.b)}"
             if not r.gated:
                 sig = f"Not tested (Friedman p = {_fmt_p(ma.friedman.pvalue)})"
             else:
-                sig = "Significant" if r.significant(alpha) else "Not significant"
+                sig = "Significant" if decides(r, method, alpha) else "Not significant"
             pp = _fmt_p(paper) if paper is not None else "—"
-            lines.append(f"| {METRIC_LABELS[ma.metric]} | {cmp_} | {_fmt_p(r.pvalue_corrected)} "
-                         f"| {sig} | {pp} | {_fmt_p(r.pvalue_exact_corrected)} "
-                         f"| {r.effect:+.2f} {_ci(*r.effect_ci)} "
+            lines.append(f"| {METRIC_LABELS[ma.metric]} | {cmp_} | {_fmt_p(p_holm(r, method))} "
+                         f"| {sig} | {pp} | {r.effect:+.2f} {_ci(*r.effect_ci)} "
                          f"| {_fmt(r.diff_median)} {_ci(*r.diff_ci)} |")
-    return "\n".join(lines)
+    return "\n".join(lines) + "\n\n" + p_note(analysis, users, alpha)
 
 
 def median_ci_table(analysis: Sequence[MetricAnalysis]) -> str:
@@ -176,10 +259,18 @@ def _num(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def users_of(execs: Sequence[Execution]) -> int:
+    """The number of users in ``execs``."""
+    return len({e.user for e in execs})
+
+
 def summary(
     execs: Sequence[Execution], analysis: Sequence[MetricAnalysis], meta: dict[str, Any]
 ) -> dict[str, Any]:
-    """The summary.json document."""
+    """The summary.json document; per pair ``p_holm`` (the deciding p), its
+    ``p_holm_method`` and ``significant`` by it, besides both corrected values."""
+    users = users_of(execs)
+    methods = {ma.metric: p_method(ma, users) for ma in analysis}
     return {
         "medians": medians(execs),
         "medians_ci95": {
@@ -193,7 +284,10 @@ def summary(
             ma.metric: {
                 f"{r.a} vs {r.b}": {
                     "statistic": _num(r.statistic), "p": _num(r.pvalue),
-                    "p_corr": _num(r.pvalue_corrected), "significant": r.significant(),
+                    "p_corr": _num(r.pvalue_corrected),
+                    "p_holm": _num(p_holm(r, methods[ma.metric])),
+                    "p_holm_method": methods[ma.metric],
+                    "significant": decides(r, methods[ma.metric]),
                     "tested": r.gated, "p_exact": _num(r.pvalue_exact),
                     "p_exact_corr": _num(r.pvalue_exact_corrected),
                     "rank_biserial": _num(r.effect),
@@ -222,3 +316,60 @@ def write_outputs(
     doc = summary(execs, analysis, meta)
     (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
     return analysis, doc
+
+
+def conditions(study: StudyConfig) -> dict[str, Any]:
+    """What the study's robot runs with (summary.json's ``conditions``, the figures'
+    captions): the whole-body caps (ISO/TS 15066) and the braking and checks of the
+    control configuration of its first approach, beside the daemon's defaults."""
+    from mmctl.config import default_config
+    from mmctl.control.step import whole_body_caps
+    from mmctl.model.robot import RobotModel
+
+    cfg = study.control_config(study.strategies[0])
+    base = default_config()
+    caps = whole_body_caps(cfg, RobotModel(cfg.robot).arm_mass)
+    daemon = whole_body_caps(base, RobotModel(base.robot).arm_mass)
+    return {
+        "config": study.config_path,
+        "limits.body_region": cfg.limits.body_region,
+        "caps": {"energy_J": _num(caps.energy), "base_speed_m_s": _num(caps.base_speed),
+                 "ee_speed_m_s": _num(caps.ee_speed)},
+        "safety.brake_condition": cfg.safety.brake_condition,
+        "safety.collision_check": cfg.safety.collision_check,
+        "idk.avoid_joint_limits": cfg.idk.avoid_joint_limits,
+        "daemon_default": {
+            "limits.body_region": base.limits.body_region,
+            "energy_J": _num(daemon.energy),
+            "safety.brake_condition": base.safety.brake_condition,
+        },
+    }
+
+
+def conditions_text(cond: Mapping[str, Any] | None) -> str:
+    """One sentence from :func:`conditions` for a caption ("" when ``cond`` is None)."""
+    if not cond:
+        return ""
+    caps = cond.get("caps") or {}
+    dflt = cond.get("daemon_default") or {}
+    src = (f"control configuration {cond['config']}" if cond.get("config")
+           else "the study's built-in settings, the paper's robot")
+    if caps.get("energy_J") is None and caps.get("base_speed_m_s") is None \
+            and caps.get("ee_speed_m_s") is None:
+        cap = (f"no ISO/TS 15066 caps (limits.body_region {cond.get('limits.body_region')}; "
+               f"the daemon's default, {dflt.get('limits.body_region')}, caps E_K at "
+               f"{dflt.get('energy_J'):.4g} J)")
+    else:
+        parts = [f"{name} ≤ {caps[key]:.4g} {unit}" for key, name, unit in (
+            ("energy_J", "E_K", "J"), ("base_speed_m_s", "base speed", "m/s"),
+            ("ee_speed_m_s", "end-effector speed", "m/s")) if caps.get(key) is not None]
+        cap = (f"ISO/TS 15066 caps on (limits.body_region {cond.get('limits.body_region')}): "
+               + ", ".join(parts))
+    brake = cond.get("safety.brake_condition")
+    brake_txt = ("singularity braking only at the fault's own level (safety.brake_condition 1"
+                 if brake == 1.0 else f"singularity braking from safety.brake_condition {brake:g}")
+    brake_txt += f"; the daemon's {dflt.get('safety.brake_condition'):g})" \
+        if dflt.get("safety.brake_condition") is not None else ")"
+    checks = (f"self-collision braking {'on' if cond.get('safety.collision_check') else 'off'}, "
+              f"joint-limit hand-over {'on' if cond.get('idk.avoid_joint_limits') else 'off'}")
+    return f"Robot ({src}): {cap}; {brake_txt}; {checks}."

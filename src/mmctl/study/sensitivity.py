@@ -450,11 +450,8 @@ def write_sensitivity(out: Path, doc: dict[str, Any], figure: bool = True) -> li
     paths = [out / "sensitivity.csv", out / "sensitivity.json"]
     paths[0].write_text(sensitivity_csv(doc), encoding="utf-8")
     paths[1].write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
-    if figure:
-        from mmctl.study.plots import sensitivity_chart
+    if figure:  # (its title and caption, n included, from the document)
+        from mmctl.study.plots import write_sensitivity_figure
 
-        paths.append(out / "sensitivity.png")
-        title = (f"Morris screening: {doc.get('trajectories')} trajectories, "
-                 f"{doc.get('users')} users per point, seed {doc.get('seed')}")
-        sensitivity_chart(doc["claims"], paths[2], title)
+        paths.append(write_sensitivity_figure(doc, out / "sensitivity.png"))
     return paths
