@@ -69,8 +69,8 @@ def test_significance_table_format() -> None:
     # x_f: every user agrees; 7 users decide by the exact p, 3 x 2/2^7 = 0.0469 < 0.05
     for ln in lines[5:]:
         assert "| 0.0469 | Significant |" in ln
-    assert note.startswith("p_holm: two-sided Wilcoxon signed-rank p, Holm-Bonferroni "
-                           "corrected over the metric's 3 pairs, computed from the exact "
+    assert note.startswith("n = 7 users. p_holm: two-sided Wilcoxon signed-rank p, "
+                           "Holm-Bonferroni corrected over the metric's 3 pairs, computed from the exact "
                            "distribution (7 users; exact up to 20 users")
     assert "It alone decides" in note and "With 7 users no p_holm can be below 0.0469 (exact)" \
         in note
@@ -149,3 +149,48 @@ def test_write_outputs_and_figures(tmp_path) -> None:  # type: ignore[no-untyped
     paths = write_figures(ex, doc["median_user"], tmp_path)
     for p in paths:
         assert p.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_unfinished_executions_are_counted_and_left_out_of_the_tests(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from mmctl.study.report import excluded_users, tested, unfinished
+
+    ex = _execs(12)
+    ex = [e._replace(limited=0.01 * (e.user + 1)) for e in ex]
+    # user 3 ran out of time with switch: T_f is the limit, far above everyone else
+    ex = [e._replace(completed=False, T_f=600.0) if (e.user, e.strategy) == (3, "switch")
+          else e for e in ex]
+    assert unfinished(ex) == {"locomotion": 0, "switch": 1, "min-energy": 0}
+    assert excluded_users(ex) == [3]
+    assert {e.user for e in tested(ex)} == set(range(12)) - {3}
+    assert len(tested(ex)) == 33  # the user leaves every approach, not only switch
+    analysis, doc = write_outputs(tmp_path, ex, {})
+    assert doc["tested_users"] == 11 and doc["excluded_users"] == [3]
+    assert doc["unfinished"] == {"locomotion": 0, "switch": 1, "min-energy": 0}
+    assert doc["incomplete"] == ["user 3 switch"]
+    # the limit share's median [%]: users 0..11 -> 1..12 %, median 6.5 %
+    assert all(abs(v - 6.5) < 1e-9 for v in doc["limited_median_percent"].values())
+    # the tests ran on 11 users: the Wilcoxon statistic of a pair where every user
+    # ranks alike is the rank sum 11 * 12 / 2 = 66 (with 12 users it would be 78)
+    (xf,) = [ma for ma in analysis if ma.metric == "x_f"]
+    assert {max(r.statistic, 66 - r.statistic) for r in xf.pairwise} == {66.0}
+    # bootstrap medians over the tested users: the unfinished T_f is not among them
+    assert all(hi < 600.0 for _m, _lo, hi in (xf.medians or {}).values())
+    tab = significance_table(analysis, doc["tested_users"], excluded=len(doc["excluded_users"]))
+    assert "n = 11 users (1 unfinished excluded)." in tab.split("\n\n")[1]
+    med = median_table(ex)
+    head = [c.strip() for c in med.splitlines()[0].strip("|").split("|")]
+    assert head[-2:] == ["limit binds [%]", "unfinished"]
+    rows = {ln.split("|")[1].strip(): ln for ln in med.splitlines()[2:5]}
+    assert rows["switch"].rstrip().endswith("| 6.5 | 1 of 12 |")
+    assert rows["locomotion"].rstrip().endswith("| 6.5 | 0 of 12 |")
+    assert "user 3 switch" in med.splitlines()[-1]
+    # without unfinished executions the note says n alone
+    clean = significance_table(analyse_all(_execs(12)), 12)
+    assert "n = 12 users." in clean and "excluded" not in clean
+
+
+def analyse_all(ex: list[Execution]) -> list:  # type: ignore[type-arg]
+    from mmctl.study.report import metrics_of, values
+    from mmctl.study.stats import analyse
+
+    return analyse(values(ex), metrics_of(ex))

@@ -4,9 +4,11 @@ Without ANALYSIS, runs the paper's experiment: every simulated user does the tas
 every approach, through the update the daemon's loop runs (tare and enable as operator
 commands, the safety state machine, the wrench pipeline from the sensor's reading,
 admittance, IDK, limits; T = 2 ms) on the simulated robot's plant, faster than real
-time and in parallel processes.  Prints the median table next to the paper's and the
-significance table (Friedman, then Wilcoxon signed-rank with Holm-Bonferroni
-correction: one p column, p_holm, decides); writes results.csv, summary.json and the
+time and in parallel processes.  Prints the median table next to the paper's (with the
+share of samples on which a limit binds and the unfinished executions per approach) and
+the significance table (Friedman, then Wilcoxon signed-rank with Holm-Bonferroni
+correction: one p column, p_holm, decides; a user with an unfinished execution is
+left out of every test, and the table's note says how many); writes results.csv, summary.json and the
 figures (boxplots.png, velocity.png, energy.png) into --out.
 
   mmctl study                         # 27 users x (locomotion, switch, min-energy)
@@ -103,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         friedman_table,
         median_ci_table,
         median_table,
+        n_note,
         significance_table,
         write_outputs,
     )
@@ -144,13 +147,17 @@ def run(args: argparse.Namespace) -> int:
     if len(study.strategies) >= 3:
         print("\nFriedman test:\n")
         print(friedman_table(analysis))
-    print("\nMedians with bootstrap 95 % intervals over the users:\n")
+    tested_n, excluded = doc["tested_users"], len(doc["excluded_users"])
+    print(f"\nMedians with bootstrap 95 % intervals over the {n_note(tested_n, excluded)} "
+          "tested:\n")
     print(median_ci_table(analysis))
     print("\nWilcoxon signed-rank, Holm-Bonferroni corrected (alpha = 0.05), pairs tested "
           "only after a significant Friedman test; r: rank-biserial effect size:\n")
-    print(significance_table(analysis, study.users))
+    print(significance_table(analysis, tested_n, excluded=excluded))
     if doc["incomplete"]:
-        print(f"\nnot finished within {study.t_max:.0f} s: {', '.join(doc['incomplete'])}")
+        print(f"\nnot finished (time limit {study.t_max:.0f} s, or stopped by a fault): "
+              f"{len(doc['incomplete'])} of {n} executions, {', '.join(doc['incomplete'])}; "
+              f"users {', '.join(map(str, doc['excluded_users']))} excluded from the tests")
     sim_time = sum(e.T_f for e in res.executions)
     print(f"\n{n} executions, {sim_time:.0f} s simulated in {wall:.1f} s wall, "
           f"{cpu:.1f} s CPU ({res.cycles} control cycles, "

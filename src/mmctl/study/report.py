@@ -8,6 +8,15 @@ at most :data:`EXACT_MAX_USERS` users (when every pair of the family has one), e
 the **normal approximation** without continuity correction (the paper's, for its 27
 users).  A pair is significant when the metric's Friedman test is and ``p_holm`` <
 alpha.  :mod:`mmctl.study.stats` computes both values; this module only chooses.
+
+**Unfinished executions** (``completed`` False: the time limit or a latched fault ended
+them; their T_f is the limit, their other metrics cover part of the task) are counted
+per approach in the median table and summary.json (``unfinished``) and kept in the
+medians, but a user with one is left out of **every** test (:func:`tested`): the
+Friedman test pairs each user's values over all approaches, and its Wilcoxon pairs
+stay on the users of the Friedman test that gates them, so one n holds for a metric's
+whole family; the significance table's note says "n = K users (U unfinished
+excluded)".
 """
 
 from __future__ import annotations
@@ -75,6 +84,31 @@ def values(execs: Sequence[Execution]) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
+def unfinished(execs: Sequence[Execution]) -> dict[str, int]:
+    """Per strategy, the number of its executions not finished (``completed`` False)."""
+    return {s: sum(1 for e in execs if e.strategy == s and not e.completed)
+            for s in strategies_of(execs)}
+
+
+def excluded_users(execs: Sequence[Execution]) -> list[int]:
+    """The users with an unfinished execution in any approach, ascending."""
+    return sorted({e.user for e in execs if not e.completed})
+
+
+def tested(execs: Sequence[Execution]) -> list[Execution]:
+    """The executions the statistical tests use: every user with an unfinished
+    execution is dropped from all approaches (the tests are paired)."""
+    out = set(excluded_users(execs))
+    return [e for e in execs if e.user not in out]
+
+
+def limited_medians(execs: Sequence[Execution]) -> dict[str, float]:
+    """Per strategy, the median over its executions of the share of samples on which a
+    limit bound the command [%] (:attr:`Execution.limited` x 100)."""
+    return {s: 100.0 * float(np.median([e.limited for e in execs if e.strategy == s]))
+            for s in strategies_of(execs)}
+
+
 def medians(execs: Sequence[Execution]) -> dict[str, dict[str, float]]:
     """Median of every reported metric per strategy."""
     return {s: {m: float(np.median(x)) for m, x in v.items()} for s, v in values(execs).items()}
@@ -106,18 +140,35 @@ def _fmt(x: float) -> str:
     return f"{x:.2f}" if abs(x) >= 0.01 or x == 0.0 else f"{x:.3f}"
 
 
+#: The median table's column of the limit share and of the unfinished count.
+LIMITED_LABEL = "limit binds [%]"
+UNFINISHED_LABEL = "unfinished"
+
+
 def median_table(execs: Sequence[Execution]) -> str:
     """Markdown table: per approach, the simulated median and the paper's (— where the
-    paper has none: x_f after the hold)."""
+    paper has none: x_f after the hold), over every execution; then the median share of
+    samples on which a limit bound the command [%] and the number of unfinished
+    executions (the paper reports neither); a line under it names the unfinished."""
     med = medians(execs)
+    lim = limited_medians(execs)
+    bad = unfinished(execs)
     names = metrics_of(execs)
-    head = "| approach | " + " | ".join(f"{METRIC_LABELS[m]} sim | paper" for m in names) + " |"
-    sep = "|---|" + "---:|---:|" * len(names)
+    head = ("| approach | " + " | ".join(f"{METRIC_LABELS[m]} sim | paper" for m in names)
+            + f" | {LIMITED_LABEL} | {UNFINISHED_LABEL} |")
+    sep = "|---|" + "---:|---:|" * len(names) + "---:|---:|"
     lines = [head, sep]
     for s, row in med.items():
         paper = PAPER_MEDIANS.get(s, {})
         cells = [f"{_fmt(row[m])} | {_fmt(paper[m]) if m in paper else '—'}" for m in names]
-        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+        n_s = sum(1 for e in execs if e.strategy == s)
+        lines.append(f"| {s} | " + " | ".join(cells) + f" | {lim[s]:.1f} | {bad[s]} of {n_s} |")
+    out = set(excluded_users(execs))
+    if out:
+        which = ", ".join(f"user {e.user} {e.strategy}" for e in execs if not e.completed)
+        lines += ["", (f"Unfinished (T_f: where the execution ended, the time limit or a "
+                       f"stop; kept in these medians, excluded from the tests with all "
+                       f"their user's approaches): {which}.")]
     return "\n".join(lines)
 
 
@@ -167,9 +218,16 @@ def smallest_p_holm(users: int, pairs: int, method: str) -> float:
     return min(1.0, pairs * p)
 
 
-def p_note(analysis: Sequence[MetricAnalysis], users: int, alpha: float = ALPHA) -> str:
-    """The line under the significance table: how ``p_holm`` was computed, what it
-    decides and the smallest value ``users`` users allow."""
+def n_note(users: int, excluded: int) -> str:
+    """"n = K users (U unfinished excluded)" (without the parenthesis when U = 0)."""
+    return f"n = {users} users" + (f" ({excluded} unfinished excluded)" if excluded else "")
+
+
+def p_note(analysis: Sequence[MetricAnalysis], users: int, alpha: float = ALPHA,
+           excluded: int = 0) -> str:
+    """The line under the significance table: the users tested (``users``; ``excluded``
+    left out for an unfinished execution), how ``p_holm`` was computed, what it decides
+    and the smallest value ``users`` users allow."""
     by: dict[str, list[str]] = {}
     for ma in analysis:
         by.setdefault(p_method(ma, users), []).append(METRIC_LABELS.get(ma.metric, ma.metric))
@@ -183,7 +241,8 @@ def p_note(analysis: Sequence[MetricAnalysis], users: int, alpha: float = ALPHA)
         how = "computed " + "; ".join(f"from the {P_METHODS[m]} for {', '.join(ms)}"
                                       for m, ms in by.items()) + f" (no exact p there; {rule})"
     floors = " or ".join(f"{_fmt_p(smallest_p_holm(users, pairs, m))} ({m})" for m in by)
-    return (f"p_holm: two-sided Wilcoxon signed-rank p, Holm-Bonferroni corrected over the "
+    return (f"{n_note(users, excluded)}. "
+            f"p_holm: two-sided Wilcoxon signed-rank p, Holm-Bonferroni corrected over the "
             f"metric's {pairs} pairs, {how}. It alone decides: Significant = p_holm < "
             f"{alpha:g} after a significant Friedman test. With {users} users no p_holm can "
             f"be below {floors}. summary.json keeps both corrected values besides p_holm "
@@ -191,12 +250,13 @@ def p_note(analysis: Sequence[MetricAnalysis], users: int, alpha: float = ALPHA)
 
 
 def significance_table(analysis: Sequence[MetricAnalysis], users: int,
-                       alpha: float = ALPHA) -> str:
+                       alpha: float = ALPHA, excluded: int = 0) -> str:
     """Markdown table in the paper's Table IV format with one p column, ``p_holm``, the
     one that decides (:func:`p_method`), the effect size (rank-biserial r, positive: the
     first approach higher) and the median paired difference with their bootstrap 95 %
     intervals, and the paper's p_corr alongside; then the note saying how ``p_holm``
-    was computed (:func:`p_note`).  ``users``: the number of users (pairs per test).
+    was computed (:func:`p_note`).  ``users``: the number of users tested (pairs per
+    test); ``excluded``: the users left out for an unfinished execution (:func:`tested`).
     A pair is "Significant" only after a significant Friedman test of its metric ("Not
     tested" otherwise)."""
     lines = [
@@ -217,7 +277,7 @@ def significance_table(analysis: Sequence[MetricAnalysis], users: int,
             lines.append(f"| {METRIC_LABELS[ma.metric]} | {cmp_} | {_fmt_p(p_holm(r, method))} "
                          f"| {sig} | {pp} | {r.effect:+.2f} {_ci(*r.effect_ci)} "
                          f"| {_fmt(r.diff_median)} {_ci(*r.diff_ci)} |")
-    return "\n".join(lines) + "\n\n" + p_note(analysis, users, alpha)
+    return "\n".join(lines) + "\n\n" + p_note(analysis, users, alpha, excluded)
 
 
 def median_ci_table(analysis: Sequence[MetricAnalysis]) -> str:
@@ -268,8 +328,11 @@ def summary(
     execs: Sequence[Execution], analysis: Sequence[MetricAnalysis], meta: dict[str, Any]
 ) -> dict[str, Any]:
     """The summary.json document; per pair ``p_holm`` (the deciding p), its
-    ``p_holm_method`` and ``significant`` by it, besides both corrected values."""
-    users = users_of(execs)
+    ``p_holm_method`` and ``significant`` by it, besides both corrected values;
+    ``analysis`` made from :func:`tested` (``tested_users``, ``excluded_users``), the
+    medians from every execution, ``unfinished`` counted per approach and listed in
+    ``incomplete``."""
+    users = users_of(tested(execs))
     methods = {ma.metric: p_method(ma, users) for ma in analysis}
     return {
         "medians": medians(execs),
@@ -299,6 +362,10 @@ def summary(
             }
             for ma in analysis
         },
+        "limited_median_percent": limited_medians(execs),
+        "unfinished": unfinished(execs),
+        "tested_users": users,
+        "excluded_users": excluded_users(execs),
         "paper_medians": PAPER_MEDIANS,
         "median_user": median_user(execs),
         "incomplete": [f"user {e.user} {e.strategy}" for e in execs if not e.completed],
@@ -309,9 +376,13 @@ def summary(
 def write_outputs(
     out: Path, execs: Sequence[Execution], meta: dict[str, Any]
 ) -> tuple[list[MetricAnalysis], dict[str, Any]]:
-    """Write results.csv and summary.json into ``out``; return the analysis and summary."""
+    """Write results.csv and summary.json into ``out``; return the analysis (of the
+    users who finished every approach, :func:`tested`) and summary."""
     out.mkdir(parents=True, exist_ok=True)
-    analysis = analyse(cast(Any, values(execs)), metrics_of(execs))
+    kept = tested(execs)
+    # fewer than 2 users left: nothing to test (every table then says so by being empty)
+    analysis = (analyse(cast(Any, values(kept)), metrics_of(execs))
+                if users_of(kept) >= 2 else [])
     (out / "results.csv").write_text(results_csv(execs), encoding="utf-8")
     doc = summary(execs, analysis, meta)
     (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
