@@ -12,13 +12,13 @@ import json
 import os
 import subprocess
 import sys
-import threading
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
 
+from ptyrun import run_on_pty
 from simconfig import LOAD_PROOF, write_sim_config
 from test_liveview import Screen
 from test_sim_process import Sim
@@ -88,42 +88,10 @@ def test_off_a_terminal_every_process_logs_json_and_a_summary_shows_the_motion(
 
 def _on_pty(cmd: list[str], columns: int = 160) -> tuple[int, str]:
     """Run ``cmd`` with stdout and stderr on a fresh pty: (exit code, what it received)."""
-    import fcntl
-    import struct
-    import termios
-
-    master, slave = os.openpty()
-    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, columns, 0, 0))
     env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
     env.update(TERM="dumb", PYTHONUNBUFFERED="1")
-    received = bytearray()
-
-    def read_all() -> None:
-        while True:
-            try:
-                chunk = os.read(master, 1 << 16)
-            except OSError:  # EIO: every slave fd is closed (the command and its children)
-                return
-            if not chunk:
-                return
-            received.extend(chunk)
-
-    reader = threading.Thread(target=read_all, daemon=True)
-    reader.start()
-    try:
-        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=slave, stderr=slave,
-                                cwd=str(ROOT), env=env)
-    finally:
-        os.close(slave)
-    try:
-        code = proc.wait(300)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(30)
-    reader.join(timeout=60)
-    os.close(master)
-    return code, received.decode("utf-8", errors="replace")
+    code, raw, _ = run_on_pty(cmd, columns=columns, rows=40, env=env, cwd=str(ROOT))
+    return code, raw
 
 
 def test_on_a_terminal_every_process_logs_console_lines(tmp_path: Path,

@@ -14,7 +14,6 @@ import os
 import re
 import signal
 import struct
-import subprocess
 import sys
 import termios
 import textwrap
@@ -25,6 +24,7 @@ import numpy as np
 import pytest
 
 from mmctl.runtime.liveview import LiveView, render
+from ptyrun import run_on_pty as pty_run
 
 FULL = {
     "state": "armed", "mode": "min-energy", "fault": None, "taring": False,
@@ -220,44 +220,13 @@ class Run(NamedTuple):
 def run_on_pty(body: str, columns: int = 100, term: str = "dumb",
                stderr_on_pty: bool = False, returncode: int = 0) -> Run:
     """Run PRELUDE + body with stdout (and stderr if asked) on a fresh pty."""
-    master, slave = os.openpty()
-    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 30, columns, 0, 0))
     env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
     env["TERM"] = term
-    received = bytearray()
-
-    def read_all() -> None:
-        while True:
-            try:
-                chunk = os.read(master, 1 << 16)
-            except OSError:  # EIO: every slave fd is closed (the program and its children)
-                return
-            if not chunk:
-                return
-            received.extend(chunk)
-
-    reader = threading.Thread(target=read_all, daemon=True)
-    reader.start()
-    try:
-        proc = subprocess.Popen(
-            [sys.executable, "-c", PRELUDE + textwrap.dedent(body)],
-            stdin=subprocess.DEVNULL, stdout=slave,
-            stderr=slave if stderr_on_pty else subprocess.PIPE, env=env)
-    finally:
-        os.close(slave)
-    try:
-        _, err = proc.communicate(timeout=240)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    reader.join(timeout=60)
-    os.close(master)
-    assert not reader.is_alive()
-    raw = received.decode("utf-8", errors="replace")
-    errors = (err or b"").decode(errors="replace")
-    assert proc.returncode == returncode, errors or raw[-3000:]
-    return Run(raw, Screen().feed(raw), errors, proc.returncode)
+    code, raw, errors = pty_run([sys.executable, "-c", PRELUDE + textwrap.dedent(body)],
+                                columns=columns, env=env, stderr_on_pty=stderr_on_pty,
+                                timeout=240)
+    assert code == returncode, errors or raw[-3000:]
+    return Run(raw, Screen().feed(raw), errors, code)
 
 
 def test_log_lines_scroll_above_the_block_in_order_and_whole() -> None:
