@@ -4,6 +4,7 @@ against textbook values and Monte Carlo, the table."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -155,3 +156,39 @@ def test_differences_equal_up_to_float_noise_are_ties() -> None:
     # all four positive and tied: the same p as four equal differences
     assert wilcoxon(a, b).pvalue == wilcoxon(np.full(4, 0.134), np.zeros(4)).pvalue
     assert signed_rank_exact(a, b) == pytest.approx(2 / 16)
+
+
+def test_mmctl_study_power_reads_a_results_csv_and_writes_its_tables(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import csv
+    import json
+
+    from mmctl.cli import main
+    from mmctl.study.results import CSV_COLUMNS
+
+    rng = np.random.default_rng(4)
+    path = tmp_path / "results.csv"
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(CSV_COLUMNS)
+        for u in range(12):
+            for s, shift in (("locomotion", 1.0), ("switch", 0.0), ("min-energy", 0.02)):
+                vals = {c: "0" for c in CSV_COLUMNS}
+                vals.update(user=str(u), strategy=s, completed="1", stopped="")
+                for m in ("E", "F_h", "v", "x_f", "T_f"):
+                    vals[m] = repr(10.0 + shift + rng.normal(0.0, 0.01))
+                w.writerow([vals[c] for c in CSV_COLUMNS])
+    out = tmp_path / "p"
+    assert main(["study", "power", "--results", str(path), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "## Participants for 80% power" in text and "beside the simulation (12 users)" in text
+    doc = json.loads((out / "power.json").read_text())
+    assert len(doc["sizes"]) == len(doc["claims"]) == 15
+    e = next(c for c in doc["claims"] if (c["metric"], c["a"], c["b"])
+             == ("E", "locomotion", "switch"))
+    assert e["sim_r_rb"] == 1.0 and e["sim_diff"] == pytest.approx(1.0, abs=0.05)
+    # a claim of no difference gets its TOST p; switch vs min-energy differ by 0.02 < 0.1
+    s = next(c for c in doc["claims"] if (c["metric"], c["a"], c["b"])
+             == ("E", "switch", "min-energy"))
+    assert s["tost_p"] < 0.05
+    assert main(["study", "power", "--results", str(tmp_path / "none.csv")]) == 2
