@@ -17,6 +17,13 @@ from mmctl.study.config import StudyConfig
 from mmctl.study.plots import (
     CAPTION_GID,
     LOCOMOTION_LABEL,
+    PAPER_MEDIAN_GID,
+    PAPER_MEDIAN_LABEL,
+    PAPER_POINT_LABEL,
+    PAPER_POINT_REL_LABEL,
+    SIM_POINT_LABEL,
+    USER_DOTS_GID,
+    USER_LINE_GID,
     boxplots_figure,
     caption_of,
     sensitivity_caption,
@@ -167,13 +174,132 @@ def test_sweep_legend_and_caption(figures: list[Any], quick_conditions: dict[str
                                        "conditions": quick_conditions})
     figures.append(fig)
     labels = _legend_labels(fig)
-    for label in ("the paper's min-energy (s = 1, dynamic)", "locomotion",
-                  "coupled M, s = 1, dynamic",
-                  "dominates the paper's point (lower median Ē and x_f)"):
+    for label in (SIM_POINT_LABEL, "locomotion", "coupled M, s = 1, dynamic",
+                  "dominates the simulation's min-energy (lower median Ē and x_f than s = 1)",
+                  PAPER_POINT_LABEL, PAPER_POINT_REL_LABEL):
         assert label in labels, label
+    # the simulation's point is not called the paper's
+    assert SIM_POINT_LABEL.startswith("simulation's min-energy")
+    assert not any(lb.startswith("the paper's min-energy") for lb in labels)
     cap = caption_of(fig)
     assert "n = 3 users: 6 settings (locomotion included) × 3 users = 18 executions" in cap
     assert "no ISO/TS 15066 caps" in cap
+
+
+def _gid_lines(ax: Any, gid: str) -> list[Any]:
+    return [ln for ln in ax.get_lines() if ln.get_gid() == gid]
+
+
+def test_sweep_draws_the_papers_measured_point_raw_and_relative(figures: list[Any]) -> None:
+    rows = _sweep_rows()  # the simulation's locomotion: Ē 2.0 J
+    fig = sweep_figure(rows, {"users": 3})
+    figures.append(fig)
+    ax = fig.axes[0]
+    (raw,) = _gid_lines(ax, "paper-point")
+    assert list(raw.get_xdata()) == [0.08] and list(raw.get_ydata()) == [0.86]
+    (rel,) = _gid_lines(ax, "paper-point-relative")
+    # 0.86 / 2.52 of the simulation's locomotion (2.0 J), on the right axis 0.34
+    assert list(rel.get_xdata()) == [0.08]
+    assert abs(float(rel.get_ydata()[0]) - 2.0 * 0.86 / 2.52) < 1e-12
+    assert "0.86/2.52 = 0.34×" in PAPER_POINT_REL_LABEL
+    assert "Red diamond: the paper's measured min-energy" in caption_of(fig)
+    assert "not the paper's result" in caption_of(fig)
+    # no locomotion in the sweep: no ratio to draw it at, the raw point stays
+    fig2 = sweep_figure([r for r in rows if r.setting is not None], {"users": 3})
+    figures.append(fig2)
+    assert _gid_lines(fig2.axes[0], "paper-point")
+    assert not _gid_lines(fig2.axes[0], "paper-point-relative")
+    assert PAPER_POINT_REL_LABEL not in _legend_labels(fig2)
+
+
+def test_boxplots_join_each_users_values_from_ten_users(figures: list[Any],
+                                                        quick_conditions: dict[str, Any]) -> None:
+    ex = _execs(12)
+    fig, _marks = boxplots_figure(ex, _doc(ex, quick_conditions))
+    figures.append(fig)
+    panels = fig.axes[:5]
+    for ax in panels:
+        lines = _gid_lines(ax, USER_LINE_GID)
+        assert len(lines) == 12  # one per user
+        assert all(len(ln.get_xdata()) == 3 for ln in lines)  # through its 3 approaches
+        assert not _gid_lines(ax, USER_DOTS_GID)
+    # user 0's line in the Ē panel passes through its three values
+    e0 = [e.E for e in ex if e.user == 0]
+    assert [float(y) for y in _gid_lines(panels[0], USER_LINE_GID)[0].get_ydata()] == e0
+    assert "one user's values (paired)" in _legend_labels(fig)
+    assert "Thin grey lines join each user's values" in caption_of(fig)
+
+
+def test_boxplots_draw_dots_below_ten_users(figures: list[Any]) -> None:
+    fig, _ = boxplots_figure(_execs(4))
+    figures.append(fig)
+    for ax in fig.axes[:5]:
+        assert not _gid_lines(ax, USER_LINE_GID)
+        dots = _gid_lines(ax, USER_DOTS_GID)
+        assert len(dots) == 3 and all(len(d.get_xdata()) == 4 for d in dots)
+    assert "one user" in _legend_labels(fig)
+    assert "Grey dots: one per user" in caption_of(fig)
+
+
+def test_boxplots_mark_the_papers_medians(figures: list[Any]) -> None:
+    fig, _ = boxplots_figure(_execs(4))
+    figures.append(fig)
+    assert PAPER_MEDIAN_LABEL in _legend_labels(fig)
+    assert PAPER_MEDIAN_LABEL.startswith("paper's median")
+    for ax, m in zip(fig.axes[:5], ("E", "F_h", "v", "x_f", "T_f")):
+        (d,) = _gid_lines(ax, PAPER_MEDIAN_GID)
+        assert [float(y) for y in d.get_ydata()] == [
+            {"locomotion": {"E": 2.52, "F_h": 15.84, "v": 0.16, "x_f": 0.09, "T_f": 31.77},
+             "switch": {"E": 0.95, "F_h": 11.31, "v": 0.14, "x_f": 0.28, "T_f": 32.97},
+             "min-energy": {"E": 0.86, "F_h": 12.30, "v": 0.14, "x_f": 0.08, "T_f": 28.33},
+             }[s][m] for s in STRATS]
+
+
+def test_brackets_say_which_approach_is_higher(figures: list[Any],
+                                               quick_conditions: dict[str, Any]) -> None:
+    ex = _execs(12)  # locomotion's Ē above both others' for every user
+    doc = _doc(ex, quick_conditions)
+    fig, _marks = boxplots_figure(ex, doc)
+    figures.append(fig)
+    texts = [t.get_text() for t in fig.axes[0].texts if t.get_gid() == "bracket-label"]
+    assert "L > S **" in texts and "L > ME **" in texts
+    # x_f grows with the approach's index: switch below min-energy
+    (xf_ax,) = [ax for ax in fig.axes if ax.get_title() == "x_f [m]"]
+    xf = [t.get_text() for t in xf_ax.texts if t.get_gid() == "bracket-label"]
+    assert any(t.startswith("ME > S ") for t in xf) and any(t.startswith("S > L ") for t in xf)
+    # the direction follows summary.json's sign: flipped there, flipped in the label
+    doc["pairwise"]["E"]["locomotion vs switch"]["rank_biserial"] *= -1
+    fig2, _ = boxplots_figure(ex, doc)
+    figures.append(fig2)
+    assert "S > L **" in [t.get_text() for t in fig2.axes[0].texts]
+    assert "L > S" in caption_of(fig) and "L = Locomotion" in caption_of(fig)
+
+
+def test_boxplots_flag_the_unfinished(figures: list[Any],
+                                      quick_conditions: dict[str, Any]) -> None:
+    ex = [e._replace(completed=False, T_f=60.0) if (e.user, e.strategy) == (2, "switch")
+          else e for e in _execs(12)]
+    from mmctl.study.report import tested
+
+    meta = {"users": 12, "seed": 0, "quick": True, "task": "wall",
+            "conditions": quick_conditions}
+    doc = summary(ex, analyse(values(tested(ex)), ("E", "F_h", "v", "x_f", "T_f")), meta)
+    fig, _ = boxplots_figure(ex, doc)
+    figures.append(fig)
+    assert sum(len(_gid_lines(ax, "unfinished")) for ax in fig.axes[:5]) == 5
+    assert "unfinished (its user left out of the tests)" in _legend_labels(fig)
+    assert "n = 11 users (1 unfinished excluded)" in caption_of(fig)
+
+
+def test_the_velocity_caption_says_the_hand_follows_a_plan(figures: list[Any]) -> None:
+    ex = _execs(3)
+    speed = time_series_figure(ex, 0, "speed")
+    energy = time_series_figure(ex, 0, "energy")
+    figures += [speed, energy]
+    cap = caption_of(speed)
+    assert "The simulated hand tracks its own planned motion" in cap
+    assert "the simulated person's plan" in cap and "not a measured human's" in cap
+    assert "planned motion" not in caption_of(energy)
 
 
 def _sensitivity_doc(cond: dict[str, Any]) -> dict[str, Any]:

@@ -162,7 +162,7 @@ def test_sweep_command_writes_its_files(tmp_path: Path, capsys: pytest.CaptureFi
     png = (tmp_path / "sweep.png").read_bytes()
     assert png[:8] == PNG and len(png) > 10_000
     out = capsys.readouterr().out
-    assert "Inertia-weighting sweep" in out and "min-energy (paper)" in out
+    assert "Inertia-weighting sweep" in out and "min-energy (paper's setting)" in out
 
 
 def test_sweep_csv_marks_domination() -> None:

@@ -306,9 +306,10 @@ def run_sweep(args: argparse.Namespace) -> int:
     print(f"\nInertia-weighting sweep, medians over {study.users} users:\n")
     print(sweep_table(res.rows))
     dom = [r.setting.label for r in res.rows if r.dominates and r.setting is not None]
-    print("\n" + (f"dominating the paper's point on both median E and x_f: {', '.join(dom)}"
+    print("\n" + (f"dominating the simulation's min-energy at the paper's setting (s = 1, "
+                  f"dynamic) on both median E and x_f: {', '.join(dom)}"
                   if dom else "no setting has both a lower median E and a lower median x_f "
-                  "than the paper's point"))
+                  "than the simulation's min-energy at the paper's setting (s = 1, dynamic)"))
     print(f"\n{n} executions in {wall:.1f} s wall, {res.cpu_time:.1f} s CPU in the "
           f"executions ({res.cycles} control cycles); wrote "
           + ", ".join(str(p) for p in paths))

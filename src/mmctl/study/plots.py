@@ -1,14 +1,19 @@
 """Figures of the study (matplotlib, Agg backend, imported on use).
 
 * ``boxplots.png`` — the five metrics over the users, one box per approach (paper Fig. 5),
-  the median a black line on every box, brackets with stars over the pairs summary.json
-  calls significant (by ``p_holm``, :mod:`mmctl.study.report`);
-* ``velocity.png`` — ||v(kT)|| of the median user, one panel per approach (Fig. 6);
+  the median a black line on every box, each user's values joined by a thin grey line
+  (paired; below :data:`PAIRED_LINES_MIN` users a dot per user instead), the paper's
+  median a red diamond, brackets over the pairs summary.json calls significant (by
+  ``p_holm``, :mod:`mmctl.study.report`) labelled with the direction and stars
+  ("L > S ***");
+* ``velocity.png`` — ||v(kT)|| of the median user, one panel per approach (Fig. 6; the
+  simulated hand follows the simulated person's own plan);
 * ``energy.png`` — E_K(kT) of the median user, base share shaded (Fig. 7).
 
 In the switch panels, locomotion phases are shaded.  The analyses' figures:
 
 * ``sweep.png`` — the inertia-weighting sweep's Ē–x_f curves and limit-active fractions
+  with the paper's measured min-energy point, raw and relative to its locomotion
   (:func:`sweep_curve`, `mmctl study sweep`);
 * ``sensitivity.png`` — the Morris screening's μ* ranking per conclusion
   (:func:`sensitivity_chart`, `mmctl study sensitivity`).
@@ -35,7 +40,7 @@ from mmctl.study.report import (
     strategies_of,
     values,
 )
-from mmctl.study.results import APPROACH_NAMES, METRIC_LABELS, METRICS, Execution
+from mmctl.study.results import APPROACH_NAMES, METRIC_LABELS, METRICS, PAPER_MEDIANS, Execution
 from mmctl.study.stats import ALPHA
 
 _COLOURS = ("tab:red", "tab:orange", "tab:green", "tab:blue", "tab:purple")
@@ -45,6 +50,34 @@ CAPTION_GID = "caption"
 CAPTION_SIZE = 6.5
 #: The legend label of the shading in velocity.png and energy.png.
 LOCOMOTION_LABEL = "switch in its locomotion sub-mode (after a button press)"
+#: From this many users on, the boxplots join each user's values by a line; below it
+#: they draw a dot per user (a handful of lines over a box hides the box).
+PAIRED_LINES_MIN = 10
+#: The gids of the boxplots' per-user lines, per-user dots and the paper's medians.
+USER_LINE_GID = "user-line"
+USER_DOTS_GID = "user-dots"
+PAPER_MEDIAN_GID = "paper-median"
+#: The legend label of the paper's medians in boxplots.png.
+PAPER_MEDIAN_LABEL = "paper's median (Tables I-III)"
+#: The paper's measured min-energy point (Table III): median x_f [m], median Ē [J], and
+#: its locomotion's median Ē [J] (Table I), for sweep.png.
+PAPER_MIN_ENERGY_XF = PAPER_MEDIANS["min-energy"]["x_f"]
+PAPER_MIN_ENERGY_E = PAPER_MEDIANS["min-energy"]["E"]
+PAPER_LOCOMOTION_E = PAPER_MEDIANS["locomotion"]["E"]
+#: sweep.png's legend labels of the paper's measured point, raw and normalised.
+PAPER_POINT_LABEL = (f"paper's measured min-energy (x_f = {PAPER_MIN_ENERGY_XF:g} m, "
+                     f"Ē = {PAPER_MIN_ENERGY_E:g} J)")
+PAPER_POINT_REL_LABEL = (f"paper's measured min-energy relative to its locomotion (Ē "
+                         f"{PAPER_MIN_ENERGY_E:g}/{PAPER_LOCOMOTION_E:g} = "
+                         f"{PAPER_MIN_ENERGY_E / PAPER_LOCOMOTION_E:.2f}× the simulation's "
+                         "locomotion; right axis)")
+#: sweep.png's legend label of the simulation's run of the paper's setting.
+SIM_POINT_LABEL = "simulation's min-energy (s = 1, dynamic: the paper's setting)"
+#: The sentence velocity.png's caption says about the hand's motion.
+PLAN_NOTE = ("The simulated hand tracks its own planned motion: the trajectory it leads "
+             "the robot along is the simulated person's plan (minimum-jerk reaches between "
+             "the holes), not a measured human's, so the curve shows how the robot follows "
+             "a planned hand, not how a person moved.")
 
 
 def _pyplot() -> Any:
@@ -135,6 +168,35 @@ def significance_marks(summary: Mapping[str, Any] | None, metric: str,
     return out
 
 
+def short_name(strategy: str) -> str:
+    """The approach's initials for a bracket's label: L, S, ME, M, CME."""
+    name = APPROACH_NAMES.get(strategy, strategy)
+    return "".join(w[0].upper() for w in name.replace("-", " ").split())
+
+
+def higher_of(summary: Mapping[str, Any] | None, metric: str, a: str, b: str) -> str | None:
+    """Which of the pair ``a``, ``b`` has the higher values of ``metric`` by summary.json's
+    pair record: the sign of its rank-biserial r (positive: ``a``), else of its median
+    paired difference a − b; None when neither says."""
+    r = ((summary or {}).get("pairwise", {}).get(metric) or {}).get(f"{a} vs {b}") or {}
+    for key in ("rank_biserial", "median_difference"):
+        x = r.get(key)
+        if x is not None and math.isfinite(float(x)) and float(x) != 0.0:
+            return a if float(x) > 0.0 else b
+    return None
+
+
+def mark_label(summary: Mapping[str, Any] | None, metric: str, a: str, b: str,
+               stars: str) -> str:
+    """A bracket's text: the higher approach first, "L > S ***" (no direction known:
+    "L – S ***")."""
+    hi = higher_of(summary, metric, a, b)
+    if hi is None:
+        return f"{short_name(a)} – {short_name(b)} {stars}"
+    lo = b if hi == a else a
+    return f"{short_name(hi)} > {short_name(lo)} {stars}"
+
+
 def _floor_text(users: int, pairs: int, method: str) -> str:
     how = (f"exact: {pairs} × 2/2^{users}" if method == "exact"
            else f"normal approximation: {pairs} × the tail at z = "
@@ -143,13 +205,31 @@ def _floor_text(users: int, pairs: int, method: str) -> str:
 
 
 def _boxplot_caption(n_users: int, names: Sequence[str], summary: Mapping[str, Any] | None,
-                     marks: Sequence[tuple[str, str, str, str]]) -> str:
+                     marks: Sequence[tuple[str, str, str, str]], unfinished: int = 0) -> str:
     k = len(names)
     what = (f"The paper's Fig. 5 in simulation: one panel per metric, one box per approach "
             f"over n = {n_users} users (every user did every approach: {n_users} × {k} = "
             f"{n_users * k} executions{_setting(summary)}).")
+    what += (" Thin grey lines join each user's values over the approaches (the tests are "
+             "paired: a line's slope is that user's difference)."
+             if n_users >= PAIRED_LINES_MIN else
+             f" Grey dots: one per user (below {PAIRED_LINES_MIN} users dots, not lines).")
+    paper = [s for s in names if s in PAPER_MEDIANS]
+    if paper:
+        what += (" Red diamonds: the paper's medians (its Tables I-III, measured with 27 "
+                 "people on the real robot), at "
+                 + ", ".join(APPROACH_NAMES.get(s, s) for s in paper) + ".")
+    abbrev = ", ".join(f"{short_name(s)} = {APPROACH_NAMES.get(s, s)}" for s in names)
+    if unfinished:
+        what += (f" Red crosses: the {unfinished} unfinished executions (T_f where they "
+                 "ended); their users are left out of the tests.")
     if not summary:
         return what + " No significance marks: drawn without summary.json."
+    tested_n = int(summary.get("tested_users", n_users))
+    excluded = len(summary.get("excluded_users") or [])
+    if excluded:
+        what += f" The tests: n = {tested_n} users ({excluded} unfinished excluded)."
+    n_users = tested_n
     fams = {m: list((summary.get("pairwise", {}).get(m) or {}).values()) for m in METRICS}
     fams = {m: rs for m, rs in fams.items() if rs}
     methods = {m: str(rs[0].get("p_holm_method", "normal")) for m, rs in fams.items()}
@@ -166,7 +246,9 @@ def _boxplot_caption(n_users: int, names: Sequence[str], summary: Mapping[str, A
                f"({how}) any pair can reach is {floor}, not below {ALPHA:g}.")
     else:
         sig = (f" Brackets: the pairs with p_holm < {ALPHA:g} ({how}), tested only after "
-               f"a significant Friedman test of the metric; stars * < 0.05, ** < 0.01, "
+               f"a significant Friedman test of the metric, labelled with the direction "
+               f"(\"L > S\": the first approach's values are the higher, by the sign of the "
+               f"pair's rank-biserial r; {abbrev}) and stars * < 0.05, ** < 0.01, "
                f"*** < 0.001; "
                + ("no pair is significant in any panel." if not marks else
                   "a panel without a bracket has no significant pair."))
@@ -177,18 +259,29 @@ def _boxplot_caption(n_users: int, names: Sequence[str], summary: Mapping[str, A
 def boxplots_figure(execs: Sequence[Execution], summary: Mapping[str, Any] | None = None
                     ) -> tuple[Any, list[tuple[str, str, str, str]]]:
     """Fig. 5, unsaved: one panel per metric, one box per approach; the median a black
-    line on every box; with ``summary`` (summary.json's document) a bracket with stars
-    over every pair it calls significant; a legend of the box's parts and a caption.
-    Returns the figure and the marks drawn: (metric, a, b, stars)."""
+    line on every box; each user's values joined by a thin grey line (gid
+    :data:`USER_LINE_GID`, one per user) or, below :data:`PAIRED_LINES_MIN` users, a grey
+    dot per user (gid :data:`USER_DOTS_GID`, one set per approach); the paper's median a
+    red diamond per approach (gid :data:`PAPER_MEDIAN_GID`); unfinished executions a red
+    cross; with ``summary`` (summary.json's document) a bracket over every pair it calls
+    significant, labelled with the direction and stars ("L > S ***",
+    :func:`mark_label`); a legend of these marks and a caption.  Returns the figure and
+    the marks drawn: (metric, a, b, stars)."""
     plt = _pyplot()
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
     vals = values(execs)
     names = list(vals)
+    users = sorted({e.user for e in execs})
+    n_users = len(users)
+    lines = n_users >= PAIRED_LINES_MIN
+    unfinished = [e for e in execs if not e.completed]
     marks: list[tuple[str, str, str, str]] = []
     fliers = False
+    paper_drawn = False
     fig, axes = plt.subplots(1, len(METRICS), figsize=(3.1 * len(METRICS), 4.0))
+    xs = np.arange(1, len(names) + 1, dtype=float)
     for ax, m in zip(axes, METRICS):
         data = [vals[s][m] for s in names]
         bp = ax.boxplot(data, patch_artist=True, widths=0.6,
@@ -198,15 +291,34 @@ def boxplots_figure(execs: Sequence[Execution], summary: Mapping[str, Any] | Non
         for patch, c in zip(bp["boxes"], _COLOURS):
             patch.set_facecolor(c)
             patch.set_alpha(0.45)
-        ax.set_xticks(range(1, len(names) + 1))
-        ax.set_xticklabels([APPROACH_NAMES.get(s, s).replace(" ", "\n") for s in names],
-                           fontsize=8)
+        per_user = np.vstack(data).T if data else np.zeros((0, 0))  # (users, approaches)
+        if lines:
+            for row in per_user:
+                ax.plot(xs, row, color="0.45", lw=0.5, alpha=0.6, zorder=3, gid=USER_LINE_GID)
+        else:
+            offs = np.linspace(-0.12, 0.12, n_users) if n_users > 1 else np.zeros(1)
+            for j in range(len(names)):
+                ax.plot(xs[j] + offs, per_user[:, j], ls="none", marker="o", ms=3.5,
+                        mfc="0.35", mec="white", mew=0.4, zorder=5, gid=USER_DOTS_GID)
+        for e in unfinished:
+            ax.plot(xs[names.index(e.strategy)], e.metric(m), ls="none", marker="x",
+                    color="tab:red", ms=6, mew=1.4, zorder=6, gid="unfinished")
+        paper_y = [PAPER_MEDIANS[s][m] if m in PAPER_MEDIANS.get(s, {}) else math.nan
+                   for s in names]
+        if any(math.isfinite(y) for y in paper_y):
+            ax.plot(xs, paper_y, ls="none", marker="D", ms=6.5, mfc="tab:red", mec="darkred",
+                    mew=0.8, zorder=7, gid=PAPER_MEDIAN_GID)
+            paper_drawn = True
+        ax.set_xticks(xs)
+        ax.set_xticklabels([APPROACH_NAMES.get(s, s).replace(" ", "\n") + f"\n({short_name(s)})"
+                            for s in names], fontsize=8)
         ax.set_title(METRIC_LABELS[m])
         ax.grid(axis="y", alpha=0.3)
         pairs = significance_marks(summary, m, names)
         if pairs:
-            lo = min(float(np.min(d)) for d in data)
-            hi = max(float(np.max(d)) for d in data)
+            finite = [float(y) for y in paper_y if math.isfinite(y)]
+            lo = min([float(np.min(d)) for d in data] + finite)
+            hi = max([float(np.max(d)) for d in data] + finite)
             span = (hi - lo) or max(abs(hi), 1.0) * 0.1
             step = 0.13 * span
             # narrow brackets below wide ones; each on a level of its own
@@ -217,11 +329,10 @@ def boxplots_figure(execs: Sequence[Execution], summary: Mapping[str, Any] | Non
                 y = hi + step * (0.5 + level)
                 ax.plot([x1, x1, x2, x2], [y - 0.2 * step, y, y, y - 0.2 * step],
                         color="black", lw=0.9)
-                ax.text(0.5 * (x1 + x2), y - 0.05 * step, stars, ha="center", va="bottom",
-                        fontsize=9)
+                ax.text(0.5 * (x1 + x2), y - 0.05 * step, mark_label(summary, m, a, b, stars),
+                        ha="center", va="bottom", fontsize=7.5, gid="bracket-label")
             marks += [(m, a, b, stars) for a, b, stars in pairs]
             ax.set_ylim(top=hi + step * (0.9 + len(pairs)))
-    n_users = len(next(iter(vals.values()))["E"]) if vals else 0
     fig.suptitle(f"Peg-in-hole study: {n_users} simulated users × {len(names)} approaches",
                  fontsize=10)
     handles = [Line2D([], [], color="black", lw=2.2, label="median"),
@@ -231,13 +342,25 @@ def boxplots_figure(execs: Sequence[Execution], summary: Mapping[str, Any] | Non
     if fliers:
         handles.append(Line2D([], [], ls="none", marker="o", mfc="none", mec="black", ms=4,
                               label="a user beyond the whiskers"))
+    handles.append(Line2D([], [], color="0.45", lw=0.8, label="one user's values (paired)")
+                   if lines else
+                   Line2D([], [], ls="none", marker="o", ms=3.5, mfc="0.35", mec="white",
+                          label="one user"))
+    if paper_drawn:
+        handles.append(Line2D([], [], ls="none", marker="D", ms=6.5, mfc="tab:red",
+                              mec="darkred", label=PAPER_MEDIAN_LABEL))
+    if unfinished:
+        handles.append(Line2D([], [], ls="none", marker="x", color="tab:red", ms=6, mew=1.4,
+                              label="unfinished (its user left out of the tests)"))
     if marks:
         handles.append(Line2D([], [], color="black", lw=0.9,
-                              label=f"bracket: p_holm < {ALPHA:g} (stars: * < 0.05, "
-                              "** < 0.01, *** < 0.001)"))
-    band = _layout(fig, _boxplot_caption(n_users, names, summary, marks), legend_rows=1)
+                              label=f"bracket: p_holm < {ALPHA:g}, \"L > S\": L higher "
+                              "(* < 0.05, ** < 0.01, *** < 0.001)"))
+    rows = 1 if len(handles) <= 5 else 2
+    band = _layout(fig, _boxplot_caption(n_users, names, summary, marks, len(unfinished)),
+                   legend_rows=rows)
     fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, band),
-               ncol=len(handles), fontsize=7, frameon=False)
+               ncol=-(-len(handles) // rows), fontsize=7, frameon=False)
     return fig, marks
 
 
@@ -313,7 +436,7 @@ def time_series_figure(execs: Sequence[Execution], user: int, what: str,
                f"nearest the median over the approaches and the paper's five metrics, of "
                f"n = {n_users} users × {len(names)} approaches = {n_users * len(names)} "
                f"executions{_setting(summary)}. Peak E_K of these {len(names)} executions: "
-               f"{peak:.3g} J.")
+               f"{peak:.3g} J." + (" " + PLAN_NOTE if what == "speed" else ""))
     cond = conditions_text((summary or {}).get("conditions"))
     band = _layout(fig, caption + (" " + cond if cond else ""),
                    legend_rows=1 if len(handles) <= 2 else 2)
@@ -345,10 +468,14 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
     """The inertia-weighting sweep, unsaved (``rows``: :class:`mmctl.study.sweep.SweepRow`;
     ``meta``: users, seed, quick, task, conditions for the title and caption): left,
     median Ē against median x_f, one curve per projector through the base scales
-    (labelled), the paper's point (s = 1, dynamically consistent) starred, the coupled
-    ablation as diamonds, the locomotion approach as a square and a setting that
-    dominates the paper's point ringed; right, the median fraction of samples on which
-    a limit bound the command, against the scale."""
+    (labelled), the simulation's min-energy at the paper's setting (s = 1, dynamically
+    consistent) starred, the coupled ablation as diamonds, the locomotion approach as a
+    square, a setting that dominates the simulation's min-energy ringed, and the
+    paper's *measured* min-energy point (Table III: x_f = 0.08 m, Ē = 0.86 J) as a red
+    diamond, raw, and hollow at its ratio to the paper's locomotion (0.86/2.52 = 0.34)
+    times the simulation's locomotion Ē, read on a right axis Ē / locomotion's Ē (when
+    the sweep ran locomotion); right, the median fraction of samples on which a limit
+    bound the command, against the scale (the paper reports none: no paper point)."""
     plt = _pyplot()
     fig, (ax, axl) = plt.subplots(1, 2, figsize=(12.0, 4.8),
                                   gridspec_kw={"width_ratios": [1.6, 1.0]})
@@ -386,18 +513,29 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
             axl.plot(s.base_scale, 100 * r.limited, "D", color=c, mfc="none", ms=8, mew=1.5,
                      label=f"coupled, {s.projector}")
         elif s.paper:
-            ax.plot(r.x_f, r.E, "*", color="black", ms=15, zorder=5,
-                    label="the paper's min-energy (s = 1, dynamic)")
+            ax.plot(r.x_f, r.E, "*", color="black", ms=15, zorder=5, label=SIM_POINT_LABEL)
         if s is not None and r.dominates:
             ax.plot(r.x_f, r.E, "o", mfc="none", mec="gold", ms=13, mew=2, zorder=6,
-                    label="_nolegend_" if ringed else "dominates the paper's point "
-                    "(lower median Ē and x_f)")
+                    label="_nolegend_" if ringed else "dominates the simulation's "
+                    "min-energy (lower median Ē and x_f than s = 1)")
             ringed = True
+    # the paper's measured point: raw, and relative to its locomotion on a right axis
+    ax.plot(PAPER_MIN_ENERGY_XF, PAPER_MIN_ENERGY_E, "D", mfc="tab:red", mec="darkred",
+            ms=8, zorder=7, gid="paper-point", label=PAPER_POINT_LABEL)
+    loco = next((r for r in rows if r.setting is None and r.E > 0), None)
+    if loco is not None:
+        e_loc = float(loco.E)
+        ratio = PAPER_MIN_ENERGY_E / PAPER_LOCOMOTION_E
+        ax.plot(PAPER_MIN_ENERGY_XF, ratio * e_loc, "D", mfc="none", mec="tab:red", mew=1.6,
+                ms=8, zorder=7, gid="paper-point-relative", label=PAPER_POINT_REL_LABEL)
+        sec = ax.secondary_yaxis("right", functions=(lambda e: e / e_loc,
+                                                     lambda q: q * e_loc))
+        sec.set_ylabel("median Ē / the simulation's locomotion Ē", fontsize=8)
+        sec.tick_params(labelsize=7)
     ax.set_xlabel("median x_f [m]")
     ax.set_ylabel("median Ē [J]")
     ax.set_title("Ē–x_f over the base's weight s·M_b in the IDK", fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
     axl.set_xscale("log")
     axl.set_xlabel("base weight scale s")
     axl.set_ylabel("samples with a limit active [%] (median user)")
@@ -416,10 +554,24 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
                "IDK, the base's inertia weighted s·M_b in its solution (Ē is measured with "
                "the true block-diagonal M throughout), with the dynamically consistent or "
                "the ordinary null-space projector; dashed, hollow: the same settings' x_f "
-               "after the end-of-trial hold. Right: the median user's share of samples on "
-               f"which a limit bound the command. {n}.")
+               "after the end-of-trial hold. Black star: the simulation's min-energy at the "
+               "paper's setting (s = 1, dynamic, block-diagonal M), not the paper's "
+               "result. Red diamond: the paper's measured min-energy (its Table III, 27 "
+               f"people on the real robot: x_f = {PAPER_MIN_ENERGY_XF:g} m, Ē = "
+               f"{PAPER_MIN_ENERGY_E:g} J); hollow red diamond: the same point relative to "
+               f"the paper's locomotion (Ē {PAPER_MIN_ENERGY_E:g}/{PAPER_LOCOMOTION_E:g} = "
+               f"{PAPER_MIN_ENERGY_E / PAPER_LOCOMOTION_E:.2f}×), drawn at that multiple of "
+               "the simulation's locomotion Ē and read on the right axis (Ē / the "
+               "simulation's locomotion Ē), which compares the energy saving rather than "
+               "the robots' absolute energies. Right: the median user's share of samples on "
+               f"which a limit bound the command (the paper reports none). {n}.")
     cond = conditions_text((meta or {}).get("conditions"))
-    _layout(fig, caption + (" " + cond if cond else ""))
+    # the left panel's legend under the panels: its entries would hide the curves
+    handles, labels = ax.get_legend_handles_labels()
+    band = _layout(fig, caption + (" " + cond if cond else ""),
+                   legend_rows=-(-len(handles) // 2))
+    fig.legend(handles, labels, loc="lower left", bbox_to_anchor=(0.01, band), ncol=2,
+               fontsize=7, frameon=False)
     return fig
 
 

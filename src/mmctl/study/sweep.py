@@ -26,8 +26,9 @@ the dynamic projector and no coupling the solver computes exactly what the plain
 min-energy strategy computes (``tests/test_study_sweep.py`` compares the executions).
 
 Outputs: ``sweep.csv`` (one row per setting: medians over the users, x_f also after
-the end-of-trial hold, the limit-active fraction, whether it dominates the paper's
-point) and ``sweep.png``
+the end-of-trial hold, the limit-active fraction, whether it dominates the
+simulation's min-energy at the paper's setting, s = 1 dynamic: ``paper`` = 1 marks that
+row, a setting, not the paper's measured result) and ``sweep.png``
 (:func:`mmctl.study.plots.sweep_curve`).
 """
 
@@ -90,7 +91,8 @@ class Setting:
 
     @property
     def paper(self) -> bool:
-        """The paper's min-energy: scale 1, dynamically consistent, block-diagonal M."""
+        """The paper's setting of min-energy: scale 1, dynamically consistent,
+        block-diagonal M (its simulation, not the paper's measured result)."""
         return self.base_scale == 1.0 and self.projector == "dynamic" and not self.coupled
 
     @property
@@ -181,7 +183,8 @@ class SweepRow(NamedTuple):
     ``min-energy`` (with ``setting``) or ``locomotion`` (setting None); medians of the
     paper's metrics [J, N, m/s, m, s]; limited: median over users of the fraction of
     samples on which a limit bound the command; completed: executions finished within
-    the time limit; dominates: median Ē and median x_f both below the paper's point's;
+    the time limit; dominates: median Ē and median x_f both below those of the
+    simulation's min-energy at the paper's setting (s = 1, dynamic, block);
     x_f_hold: median x_f after the end-of-trial hold [m] (NaN: no hold)."""
 
     approach: str
@@ -282,14 +285,16 @@ def sweep_csv(rows: Sequence[SweepRow]) -> str:
 
 
 def sweep_table(rows: Sequence[SweepRow]) -> str:
-    """Markdown table of the sweep: one row per setting."""
+    """Markdown table of the sweep: one row per setting; "min-energy (paper's setting)"
+    is the simulation's run at s = 1, dynamic, block-diagonal M (not the paper's
+    measured numbers), and "dominates" compares with that row."""
     lines = [("| approach | s | projector | M | Ē [J] | x_f [m] | x_f hold [m] | F̄_h [N] "
-              "| T_f [s] | base share of Ē | limit active | dominates the paper's |"),
+              "| T_f [s] | base share of Ē | limit active | dominates s = 1 |"),
              "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         s = r.setting
         share = r.E_base / r.E if r.E > 0 else math.nan
-        name = "min-energy (paper)" if s is not None and s.paper else r.approach
+        name = "min-energy (paper's setting)" if s is not None and s.paper else r.approach
         lines.append(
             f"| {name} | {'' if s is None else f'{s.base_scale:.3g}'} "
             f"| {'' if s is None else s.projector} "
