@@ -15,12 +15,14 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 
-def _child(log_setup: tuple[str, bool | None], target: Callable[..., Any], *args: Any,
-           **kwargs: Any) -> None:
+def with_logging(log_setup: tuple[str, bool | None], target: Callable[..., Any], *args: Any,
+                 **kwargs: Any) -> Any:
+    """A ``spawn`` child's entry: logging set up as ``log_setup`` (the parent's
+    :data:`mmctl.runtime.logging.CURRENT`), then ``target(*args, **kwargs)``."""
     from mmctl.runtime.logging import setup_logging
 
     setup_logging(log_setup[0], json=log_setup[1])
-    target(*args, **kwargs)
+    return target(*args, **kwargs)
 
 
 def spawn_ready(target: Callable[..., Any], args: tuple[Any, ...], *, name: str,
@@ -36,7 +38,7 @@ def spawn_ready(target: Callable[..., Any], args: tuple[Any, ...], *, name: str,
 
     ctx = multiprocessing.get_context("spawn")
     parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_child, args=(mmctl_logging.CURRENT, target, child, *args),
+    proc = ctx.Process(target=with_logging, args=(mmctl_logging.CURRENT, target, child, *args),
                        kwargs=kwargs or {}, name=name, daemon=True)
     try:
         proc.start()

@@ -84,12 +84,13 @@ class FakeURController:
         if self.alive:
             return self
         from mmctl.runtime import logging as mmctl_logging
+        from mmctl.runtime.spawn import with_logging
 
         parent, child = self._ctx.Pipe(duplex=True)
-        proc = self._ctx.Process(
-            target=server.run, args=(self.host, self.q_init, self._block, child,
-                                      self.log_capacity, self._log.next_seq, False,
-                                      mmctl_logging.CURRENT),
+        proc = self._ctx.Process(  # (its events in the format of the stdout it shares)
+            target=with_logging, args=(mmctl_logging.CURRENT, server.run, self.host,
+                                       self.q_init, self._block, child, self.log_capacity,
+                                       self._log.next_seq),
             name=f"fake-ur-{self.host}", daemon=True)
         proc.start()
         child.close()

@@ -327,8 +327,8 @@ class FakeURServer:
 
 
 def run(host: str, q_init: Sequence[float], block: Any = None, control: Any = None,
-        log_capacity: int = 200_000, first_seq: int = 0, stop_signals: bool = False,
-        log_setup: tuple[str, bool | None] | None = None) -> int | None:
+        log_capacity: int = 200_000, first_seq: int = 0, stop_signals: bool = False
+        ) -> int | None:
     """Entry point of the fake's process: serve until asked to stop.
 
     Reports ``("ready", pid)`` or ``("error", message)`` on ``control`` first.  The
@@ -337,8 +337,6 @@ def run(host: str, q_init: Sequence[float], block: Any = None, control: Any = No
     to this controller and then ends it.  A parent that dies closes the control pipe,
     which ends this process too.  ``first_seq``: the seq of the command log's first
     entry (a restarted controller numbers on from its predecessor's log).
-    ``log_setup``: the parent's (level, json) logging set-up, so a spawned fake's events
-    come out in the format of the stream it shares (None: leave logging as it is).
     ``stop_signals`` (run in the foreground, ``mmctl fake-ur``): SIGINT and SIGTERM end
     the serving loop through a flag it checks every period, never as an exception (a
     KeyboardInterrupt that lands in a finalizer is swallowed: seen once in a loaded CI
@@ -346,10 +344,6 @@ def run(host: str, q_init: Sequence[float], block: Any = None, control: Any = No
     """
     import os
 
-    if log_setup is not None:
-        from mmctl.runtime.logging import setup_logging
-
-        setup_logging(log_setup[0], json=log_setup[1])
     try:
         os.setsid()
     except OSError:  # already a session leader (run standalone)
