@@ -81,16 +81,23 @@ class Plant:
             self.wheels.track(i, t0)
         self._command = WheelCommand(geom, cfg.limits.wheel_velocity)
         self.t = t0
+        self._state: PlantState | None = None  # state() until the plant moves
 
     def state(self) -> PlantState:
-        """The actual ``q``, ``q̇`` now (the base where it is, slip included)."""
+        """The actual ``q``, ``q̇`` now (the base where it is, slip included; read-only
+        arrays, the same ones until the plant moves)."""
+        if self._state is not None:
+            return self._state
         q = np.empty(9)
         qd = np.empty(9)
         q[:6] = self.arm.q
         qd[:6] = self.arm.qd
         q[6:] = self.wheels.pose
         qd[6:] = self.wheels.twist()
-        return PlantState(q, qd)
+        q.setflags(write=False)
+        qd.setflags(write=False)
+        self._state = PlantState(q, qd)
+        return self._state
 
     def odometry(self) -> BaseOdometry:
         """The base as its wheel encoders report it now (no slip: equal to
@@ -102,11 +109,11 @@ class Plant:
         ω_z [rad/s], base frame), advance ``dt`` [s]; returns the new state."""
         if dt <= 0.0:
             raise ValueError(f"dt must be > 0 s, got {dt}")
-        self.arm.speed([float(x) for x in np.asarray(qd_arm, dtype=float)],
-                       self.arm_acceleration)
+        self._state = None
+        self.arm.speed(np.asarray(qd_arm, dtype=float).tolist(), self.arm_acceleration)
         self.arm.step(dt)
-        b = np.asarray(base_twist, dtype=float)
-        wheels, _twist = self._command(float(b[0]), float(b[1]), float(b[2]))
+        vx, vy, wz = np.asarray(base_twist, dtype=float).tolist()
+        wheels, _twist = self._command(vx, vy, wz)
         self.wheels.command_all(wheels, self.t)
         self.t += dt
         self.wheels.advance(self.t)
