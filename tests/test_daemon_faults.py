@@ -7,11 +7,13 @@ CAN sensor and CiA 402 drives on python-can's in-process virtual bus) and is ste
 hand with ``Daemon.step_once`` (the last test runs the real loop thread).  Covered here:
 a wrench over the limit (the CAN sensor's samples), an arm protective stop (RTDE safety
 bits), a drive in FAULT that the operator's enable resets (CiA 402), an arm controller
-that dies (refused while it is gone), and overruns of the real loop thread.  Each one:
-the detecting cycle sends no speedJ (a drive fault found by the base's twist: after that
-cycle's own speedJ), the fake controller receives only stops after its last motion
-command, all with ``arm.stop_deceleration``, the drives get zero targets and are
-disabled, one ``fault`` event names the cause, enabling is refused while it persists.
+that dies (refused while it is gone), a fault after the arm hold (a frozen stream), and
+overruns of the real loop thread.  Each one: the detecting cycle sends no speedJ (a
+drive fault found by the base's twist: after that cycle's own speedJ), after its last
+motion command the fake controller receives at most the arm hold's zero speedJs, then
+the stop and nothing but stops, all with ``arm.stop_deceleration``, the drives get zero
+targets and are disabled, one ``fault`` event names the cause, enabling is refused
+while it persists.
 
 Every SPEC §5 condition (these, and the sensor's staleness, status and saturation, the
 arm's not-PLAYING, emergency stop and frozen timestamp, a drive's lost heartbeat, a
@@ -208,28 +210,66 @@ def detect(w: World, inject: Callable[[], None], cause: FaultCause,
     w.sim.set_push(None)
 
 
-def stops_after_motion(w: World) -> list[Any]:
+def after_motion(w: World) -> list[Any]:
     """The fake controller's arm commands after the last speedJ with motion."""
     log = w.arm_log()
     last = max(i for i, c in enumerate(log) if moving([c]))
     return log[last + 1:]
 
 
+def is_stop(c: Any) -> bool:
+    """A stop as the fake controller logs it: speedStop (any deceleration: checked
+    after), or speedJ(0) at the stop deceleration."""
+    return c.kind is CommandKind.SPEED_STOP or (
+        not any(c.qd) and c.acceleration == pytest.approx(STOP_DECELERATION))
+
+
+def split_at_stop(w: World) -> tuple[list[Any], list[Any]] | None:
+    """The arm commands after the last speedJ with motion, split at the first stop:
+    (those before it, it and those after it); None while no stop followed the motion."""
+    tail = after_motion(w)
+    first = next((i for i, c in enumerate(tail) if is_stop(c)), None)
+    return None if first is None else (tail[:first], tail[first:])
+
+
 def assert_arm_stopped(w: World, stepping: bool = True) -> None:
     """At the fake controller: a stop arrived after the last speedJ with motion, and
-    nothing but stops, each with the configured deceleration (speedStop; speedJ(0) when
-    the arm is unfit for it).  One link carries them in order: no motion command the
-    daemon sent before the stop can arrive after it."""
-    if stepping:
-        steps_until(w, lambda: stops_after_motion(w), "the stop at the fake UR")
-    else:
-        wait_for(lambda: stops_after_motion(w), "the stop at the fake UR")
-    tail = stops_after_motion(w)
-    for c in tail:
-        if c.kind is CommandKind.SPEED_STOP:
-            assert c.deceleration == pytest.approx(STOP_DECELERATION), tail
+    from the first stop on nothing but stops, each with the configured deceleration
+    (speedStop; speedJ(0) when the arm is unfit for it).  Between the motion and the
+    stop only the arm hold's rest may come: speedJ(0) at the normal acceleration, sent
+    while still armed (the fake controller's stream stalled for ``arm.hold_cycles``
+    cycles before the fault, and the hold braked the command to zero).  One link
+    carries them in order: nothing the daemon sent before the stop can arrive after it,
+    so a speedJ sent after the stop shows here after it."""
+    what = "the stop at the fake UR"
+    try:
+        if stepping:
+            steps_until(w, lambda: split_at_stop(w), what)
         else:
-            assert not any(c.qd) and c.acceleration == pytest.approx(STOP_DECELERATION), tail
+            wait_for(lambda: split_at_stop(w), what)
+    except AssertionError as exc:
+        programs = [c.text for c in w.sim.ur.commands() if c.kind is CommandKind.PROGRAM]
+        raise AssertionError(f"{exc}; after the last motion: {after_motion(w)}; "
+                             f"the program's log: {programs[-3:]}") from None
+    # what the daemon sent right after the stop arrives a little later: look again then
+    cycles = w.daemon.cycles
+    if stepping:
+        step(w, 10)
+    else:
+        wait_for(lambda: w.daemon.cycles >= cycles + 50, "the loop to run on")
+    split = split_at_stop(w)
+    assert split is not None, f"motion after the stop: {w.arm_log()[-20:]}"
+    rest, stops = split
+    acc = w.cfg.arm.speedj_acceleration
+    assert acc != pytest.approx(STOP_DECELERATION)  # else a hold's zero passes for a stop
+    for c in rest:
+        assert (c.kind is CommandKind.SPEEDJ and not any(c.qd)
+                and c.acceleration == pytest.approx(acc)), split
+    for c in stops:
+        if c.kind is CommandKind.SPEED_STOP:
+            assert c.deceleration == pytest.approx(STOP_DECELERATION), split
+        else:
+            assert not any(c.qd) and c.acceleration == pytest.approx(STOP_DECELERATION), split
 
 
 def assert_base_stopped(w: World) -> None:
@@ -298,6 +338,29 @@ def test_a_dead_arm_controller_refuses_until_it_is_back(own_world: World) -> Non
     assert "arm_disconnected" in conditions(w)
 
 
+def test_a_fault_after_the_arm_hold_stops_after_its_zero_commands(own_world: World) -> None:
+    """The fake controller's stream freezes while the arm moves: after
+    ``arm.hold_cycles`` repeated samples the hold brakes the command to zero (speedJ(0)
+    at the normal acceleration, still armed); then a fault, whose stop (speedJ(0) at
+    the stop deceleration: the newest sample is stale) arrives after those zeros and
+    nothing after it.  A stream that stalls on a loaded machine does the same to the
+    real loop's test below.  (Frozen for less than ur_rtde's own 2.5 s timeout.)"""
+    w = own_world
+    arm_and_push(w)
+    w.sim.ur.freeze_stream(True)
+    try:
+        steps_until(w, lambda: any(not any(c.qd) for c in after_motion(w)),
+                    "the arm hold's zero speedJ", timeout=2.0)
+        detect(w, lambda: w.sim.inject("wrench_over_limit"), FaultCause.WRENCH_LIMIT)
+    finally:
+        w.sim.ur.freeze_stream(False)
+        w.sim.inject("wrench_over_limit", on=False)
+    assert_arm_stopped(w)
+    split = split_at_stop(w)
+    assert split is not None and split[0], split  # the hold's zeros came before the stop
+    assert split[1][0].kind is CommandKind.SPEEDJ, split  # unfit for speedStop: stale
+
+
 def test_loop_overruns_on_the_real_loop(own_world: World) -> None:
     """The loop thread runs; a slow per-cycle hook then overruns every deadline until
     ``loop.max_consecutive_misses`` cycles in a row have."""
@@ -316,6 +379,7 @@ def test_loop_overruns_on_the_real_loop(own_world: World) -> None:
         slow.set()
         wait_for(lambda: d.safety.state is SafetyState.FAULT, "the overrun fault")
         slow.clear()
+    speed_j = d.commands_sent["speed_j"]  # the fault's cycle sends none: FAULT is seen first
     w.sim.set_push(None)
     assert d.safety.latched is FaultCause.LOOP_OVERRUN, d.safety.as_dict()
     faults = [e for e in logs if e["event"] == "fault"]
@@ -323,8 +387,9 @@ def test_loop_overruns_on_the_real_loop(own_world: World) -> None:
     assert faults[0]["consecutive"] == w.cfg.loop.max_consecutive_misses
     assert_arm_stopped(w, stepping=False)
     wait_for(lambda: not any(w.sim.drives.target_counts()), "zero wheel targets")
+    assert d.commands_sent["speed_j"] == speed_j  # none since the fault, whatever arrived
     # on time again: the enable is accepted
     wait_for(lambda: not d.safety.active, "the loop on time again")
-    d.call("enable")
+    enable_eventually(w, stepping=False)  # a loop_overrun refusal fails
     assert d.safety.armed
     d.call("disable")
