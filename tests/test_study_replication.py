@@ -67,3 +67,30 @@ def test_seeds_replicate_the_study_and_tally_the_claims(
         assert (tmp_path / f"seed-{seed}" / "results.csv").is_file()
     out = capsys.readouterr().out
     assert "| paper's claim | paper p_corr | holds in | fails for seeds |" in out
+
+
+def test_the_tally_decides_each_seed_by_the_users_its_tests_ran_on() -> None:
+    """A seed whose unfinished executions leave 12 users tested decides by the exact p
+    (up to 20 users), one with 21 by the normal approximation: the same pair of
+    samples (exact p_holm 0.048, normal 0.056) holds in the first and fails in the
+    second, whatever the study's own user count."""
+    rng = np.random.default_rng(4)
+    n = 12
+    base = rng.normal(1.0, 0.2, n)
+    noise = [rng.normal(0.0, 0.05, n) for _ in range(3)]
+    values = {"locomotion": {"E": base + 0.052 + noise[0]}, "switch": {"E": base + noise[1]},
+              "min-energy": {"E": base + noise[2]}}
+    a = analyse(values, ["E"])
+    pair = next(r for r in a[0].pairwise if {r.a, r.b} == {"locomotion", "min-energy"})
+    assert pair.pvalue_exact_corrected < 0.05 <= pair.pvalue_corrected
+    claim = next(c for c in paper_claims() if (c.metric, c.a, c.b) == (
+        "E", "locomotion", "min-energy"))
+
+    def row(users: object) -> dict:  # type: ignore[type-arg]
+        return next(r for r in tally({0: a, 1: a}, users=users)  # type: ignore[arg-type]
+                    if r["claim"] == claim.text())
+
+    per_seed = row({0: 12, 1: 21})
+    assert per_seed["holds"] == [0] and per_seed["fails"] == [1]
+    assert row(12)["holds"] == [0, 1]
+    assert row(27)["fails"] == [0, 1]

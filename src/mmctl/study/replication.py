@@ -77,12 +77,16 @@ def holds(claim: Claim, analysis: Sequence[MetricAnalysis], alpha: float = ALPHA
 
 
 def tally(analyses: Mapping[int, Sequence[MetricAnalysis]],
-          alpha: float = ALPHA, users: int | None = None) -> list[dict[str, Any]]:
-    """Per claim: the seeds where it holds and where it does not (``users``: see
-    :func:`holds`)."""
+          alpha: float = ALPHA, users: int | Mapping[int, int] | None = None
+          ) -> list[dict[str, Any]]:
+    """Per claim: the seeds where it holds and where it does not.  ``users``: the users
+    each seed's tests ran on (a mapping seed -> users tested, i.e. without the users an
+    unfinished execution excluded, :func:`mmctl.study.report.tested`; or one count for
+    every seed), to decide with that seed's tables' own p_holm (see :func:`holds`)."""
     rows = []
+    per_seed = users if isinstance(users, Mapping) else {s: users for s in analyses}
     for c in paper_claims(alpha):
-        verdicts = {seed: holds(c, a, alpha, users) for seed, a in analyses.items()}
+        verdicts = {seed: holds(c, a, alpha, per_seed[seed]) for seed, a in analyses.items()}
         rows.append({
             "claim": c.text(), "metric": c.metric, "a": c.a, "b": c.b,
             "paper_p_corr": PAPER_PCORR[c.metric][(c.a, c.b)],
