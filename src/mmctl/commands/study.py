@@ -20,6 +20,7 @@ figures (boxplots.png, velocity.png, energy.png) into --out.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -244,8 +245,10 @@ def _add_analyses(p: argparse.ArgumentParser) -> None:
         description="The inertia-weighting sweep (mmctl.study.sweep): the min-energy IDK "
         "with the base's inertia scaled by s in its weighting and the dynamically "
         "consistent or the ordinary null-space projector, plus the coupled-inertia "
-        "ablation and the locomotion approach, for the same users; median E and x_f per "
-        "setting. Writes sweep.csv and sweep.png.")
+        "ablation and the locomotion approach, for the same users, optionally with the "
+        "null-space gain G scaled (--gains); median E and x_f per setting, x_f also read "
+        "0.5, 1, 2 s after T_f and at the end of the hold. Writes sweep.csv and sweep.png "
+        "(and sweep-gain.png with several gains).")
     _add_common(sw, "sweep-out", "number of simulated users (default 27; 3 with --quick)")
     sw.add_argument("--quick", action="store_true", help="the short two-hole task")
     sw.add_argument("--scales", type=float, nargs="+", default=None, metavar="S",
@@ -254,6 +257,15 @@ def _add_analyses(p: argparse.ArgumentParser) -> None:
                     default=["dynamic", "euclidean"], help="null-space projectors")
     sw.add_argument("--no-coupled", action="store_true",
                     help="skip the coupled-inertia ablation")
+    sw.add_argument("--gains", type=float, nargs="+", default=None, metavar="G",
+                    help="scales g > 0 of the null-space gain G's arm entries "
+                    "(idk.null_gain; the paper's G = diag(1,1,1,1,1,1,0,0,0) [1/s] is g = 1; "
+                    "each scaled entry must stay <= 100/s, the key's range), one setting "
+                    "per scale, projector and gain, in the min-energy settings only "
+                    "(locomotion keeps the configured G). Default: 1 only (the grid of "
+                    "--scales x --projectors). With several gains sweep-gain.png also "
+                    "draws Ē against x_f read at T_f, 0.5, 1, 2 s after it and at the "
+                    "hold's end")
     sw.set_defaults(_run=run_sweep)
     se = sub.add_parser(
         "sensitivity", help="Morris screening (SALib) of which factors (people, plant, "
@@ -281,14 +293,33 @@ def run_sweep(args: argparse.Namespace) -> int:
     from mmctl.study.config import StudyConfig
     from mmctl.study.executor import make_executor
     from mmctl.study.report import conditions
-    from mmctl.study.sweep import DEFAULT_SCALES, run_sweep, settings, sweep_table, write_sweep
+    from mmctl.study.sweep import (
+        DEFAULT_GAINS,
+        DEFAULT_SCALES,
+        run_sweep,
+        settings,
+        sweep_table,
+        write_sweep,
+    )
 
     if args.jobs < 1:
         raise ConfigError("--jobs", args.jobs, "must be >= 1")
+    for g in args.gains or ():
+        if not (math.isfinite(g) and g > 0.0):
+            raise ConfigError("--gains", g, "each gain scale must be a number > 0")
     study = StudyConfig.make(quick=args.quick, users=args.users, seed=args.seed,
                              config_path=args.config)
     grid = settings(tuple(args.scales) if args.scales else DEFAULT_SCALES,
-                    tuple(dict.fromkeys(args.projectors)), not args.no_coupled)
+                    tuple(dict.fromkeys(args.projectors)), not args.no_coupled,
+                    tuple(dict.fromkeys(args.gains)) if args.gains else DEFAULT_GAINS)
+    base_cfg = study.control_config("min-energy")
+    for g in grid:  # a gain the configuration cannot take: one line now, not in a worker
+        try:
+            g.config(base_cfg)
+        except ConfigError as exc:
+            raise ConfigError("--gains", g.gain_scale, f"makes {exc.key} = "
+                              f"{list(exc.value) if isinstance(exc.value, list) else exc.value}"
+                              f": {exc.allowed}") from None
     n = study.users * (len(grid) + 1)
     executor = make_executor(args.jobs, args.cluster)
     print(f"mmctl study sweep: {len(grid)} min-energy settings + locomotion x "

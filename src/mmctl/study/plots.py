@@ -15,6 +15,9 @@ In the switch panels, locomotion phases are shaded.  The analyses' figures:
 * ``sweep.png`` — the inertia-weighting sweep's Ē–x_f curves and limit-active fractions
   with the paper's measured min-energy point, raw and relative to its locomotion
   (:func:`sweep_curve`, `mmctl study sweep`);
+* ``sweep-gain.png`` — a sweep over the null-space gain's magnitude: Ē against x_f read
+  at T_f, at fixed delays after it and at the hold's end, and x_f against the time it is
+  read, with the paper's point (:func:`gain_read_curve`, `mmctl study sweep --gains`);
 * ``sensitivity.png`` — the Morris screening's μ* ranking per conclusion
   (:func:`sensitivity_chart`, `mmctl study sensitivity`).
 
@@ -40,7 +43,14 @@ from mmctl.study.report import (
     strategies_of,
     values,
 )
-from mmctl.study.results import APPROACH_NAMES, METRIC_LABELS, METRICS, PAPER_MEDIANS, Execution
+from mmctl.study.results import (
+    APPROACH_NAMES,
+    METRIC_LABELS,
+    METRICS,
+    PAPER_MEDIANS,
+    X_F_DELAYS,
+    Execution,
+)
 from mmctl.study.stats import ALPHA
 
 _COLOURS = ("tab:red", "tab:orange", "tab:green", "tab:blue", "tab:purple")
@@ -475,20 +485,40 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
     diamond, raw, and hollow at its ratio to the paper's locomotion (0.86/2.52 = 0.34)
     times the simulation's locomotion Ē, read on a right axis Ē / locomotion's Ē (when
     the sweep ran locomotion); right, the median fraction of samples on which a limit
-    bound the command, against the scale (the paper reports none: no paper point)."""
+    bound the command, against the scale (the paper reports none: no paper point).
+
+    A grid over the null-space gain's magnitude at one scale (``gain_scale``) draws its
+    curves along the gain instead (``G×g`` at their ends, the gain on the right panel's
+    axis); a grid over both draws one curve per projector and gain."""
     plt = _pyplot()
     fig, (ax, axl) = plt.subplots(1, 2, figsize=(12.0, 4.8),
                                   gridspec_kw={"width_ratios": [1.6, 1.0]})
-    curves: dict[str, list[Any]] = {}
-    for r in rows:
-        if r.setting is not None and not r.setting.coupled:
-            curves.setdefault(r.setting.projector, []).append(r)
+    plain = [r for r in rows if r.setting is not None and not r.setting.coupled]
+    gains = {_gain(r.setting) for r in plain}
+    by_gain = len(gains) > 1 and len({r.setting.base_scale for r in plain}) == 1
+
+    def along(r: Any) -> float:
+        return _gain(r.setting) if by_gain else float(r.setting.base_scale)
+
+    def end_label(r: Any) -> str:
+        return f"G×{_gain(r.setting):.2g}" if by_gain else f"s={r.setting.base_scale:.2g}"
+
+    curves: dict[tuple[str, float], list[Any]] = {}
+    for r in plain:
+        other = float(r.setting.base_scale) if by_gain else _gain(r.setting)
+        curves.setdefault((r.setting.projector, other), []).append(r)
     colours = {"dynamic": "tab:green", "euclidean": "tab:blue"}
-    for proj, rs in curves.items():
-        rs = sorted(rs, key=lambda r: r.setting.base_scale)
-        c = colours.get(proj, "tab:gray")
+    per_projector = max((sum(1 for k in curves if k[0] == pr) for pr in colours), default=1)
+    cycle = iter(_COLOURS * 4)
+    for (proj, other), rs in curves.items():
+        rs = sorted(rs, key=along)
+        c = colours.get(proj, "tab:gray") if per_projector == 1 else next(cycle)
         label = ("dynamically consistent  I − J_M# J" if proj == "dynamic"
                  else "ordinary  I − J# J")
+        if by_gain:
+            label += f", s = {other:g}, over G's magnitude"
+        elif len(gains) > 1 or other != 1.0:
+            label += f", G×{other:g}"
         ax.plot([r.x_f for r in rs], [r.E for r in rs], "o-", color=c, ms=4, lw=1.2,
                 label=f"min-energy, {label}")
         held = [r for r in rs if math.isfinite(getattr(r, "x_f_hold", math.nan))]
@@ -496,10 +526,10 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
             ax.plot([r.x_f_hold for r in held], [r.E for r in held], "o--", color=c, ms=4,
                     mfc="none", lw=0.8, alpha=0.8, label=f"  the same after the hold ({proj})")
         for r in (rs[0], rs[-1]) if len(rs) > 1 else rs:  # the ends: which way s grows
-            ax.annotate(f"s={r.setting.base_scale:.2g}", (r.x_f, r.E),
+            ax.annotate(end_label(r), (r.x_f, r.E),
                         textcoords="offset points", xytext=(5, 4), fontsize=7, color=c)
-        axl.plot([r.setting.base_scale for r in rs], [100 * r.limited for r in rs], "o-",
-                 color=c, ms=4, lw=1.2, label=proj)
+        axl.plot([along(r) for r in rs], [100 * r.limited for r in rs], "o-",
+                 color=c, ms=4, lw=1.2, label=proj if per_projector == 1 else f"{proj} {other:g}")
     ringed = False
     for r in rows:
         s = r.setting
@@ -510,7 +540,7 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
             c = colours.get(s.projector, "tab:gray")
             ax.plot(r.x_f, r.E, "D", color=c, mfc="none", ms=8, mew=1.5,
                     label=f"coupled M, s = 1, {s.projector}")
-            axl.plot(s.base_scale, 100 * r.limited, "D", color=c, mfc="none", ms=8, mew=1.5,
+            axl.plot(along(r), 100 * r.limited, "D", color=c, mfc="none", ms=8, mew=1.5,
                      label=f"coupled, {s.projector}")
         elif s.paper:
             ax.plot(r.x_f, r.E, "*", color="black", ms=15, zorder=5, label=SIM_POINT_LABEL)
@@ -534,10 +564,11 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
         sec.tick_params(labelsize=7)
     ax.set_xlabel("median x_f [m]")
     ax.set_ylabel("median Ē [J]")
-    ax.set_title("Ē–x_f over the base's weight s·M_b in the IDK", fontsize=10)
+    ax.set_title("Ē–x_f over the null-space gain's magnitude G×g" if by_gain
+                 else "Ē–x_f over the base's weight s·M_b in the IDK", fontsize=10)
     ax.grid(alpha=0.3)
     axl.set_xscale("log")
-    axl.set_xlabel("base weight scale s")
+    axl.set_xlabel("gain scale g on the paper's G" if by_gain else "base weight scale s")
     axl.set_ylabel("samples with a limit active [%] (median user)")
     axl.set_title("How often the limits bind", fontsize=10)
     axl.grid(alpha=0.3)
@@ -565,6 +596,11 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
                "simulation's locomotion Ē), which compares the energy saving rather than "
                "the robots' absolute energies. Right: the median user's share of samples on "
                f"which a limit bound the command (the paper reports none). {n}.")
+    if len(gains) > 1 or gains - {1.0}:
+        caption += (" The null-space gain G = g·diag(1, 1, 1, 1, 1, 1, 0, 0, 0) [1/s] (the "
+                    "paper's: g = 1) in the min-energy settings; locomotion keeps the "
+                    "paper's G." + (" Curves run along g at the one scale s." if by_gain
+                                    else ""))
     cond = conditions_text((meta or {}).get("conditions"))
     # the left panel's legend under the panels: its entries would hide the curves
     handles, labels = ax.get_legend_handles_labels()
@@ -578,6 +614,141 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
 def sweep_curve(rows: Sequence[Any], path: Path, meta: Mapping[str, Any] | None = None) -> None:
     """The inertia-weighting sweep (:func:`sweep_figure`) into ``path``."""
     fig = sweep_figure(rows, meta)
+    _save(fig, path)
+    _close(fig)
+
+
+def _gain(setting: Any) -> float:
+    return float(getattr(setting, "gain_scale", 1.0))
+
+
+#: The legend label of the paper's x_f in sweep-gain.png's right panel.
+PAPER_XF_LABEL = f"paper's min-energy x_f = {PAPER_MIN_ENERGY_XF:g} m (read at T_f)"
+
+
+def gain_read_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None,
+                     hold_time: float | None = None) -> Any:
+    """A sweep over the null-space gain's magnitude, unsaved (``rows``:
+    :class:`mmctl.study.sweep.SweepRow` with ``x_f_after``; ``meta`` as for
+    :func:`sweep_figure`; ``hold_time`` [s]: when the hold ends after T_f, default
+    the study's :data:`~mmctl.study.users.HOLD_TIME`).
+
+    Left: median Ē against median x_f read at T_f, at each of :data:`X_F_DELAYS` after
+    it and at the hold's end, one curve per read time through the gains (of the
+    block-diagonal min-energy settings at one base scale and projector: the projector
+    sets the line style), the gains written at the T_f curve, locomotion's point, and
+    the paper's measured min-energy raw and at its ratio to its locomotion times the
+    simulation's locomotion Ē (right axis: Ē / the simulation's locomotion Ē, as in
+    sweep.png).  Right: median x_f against the time it is read after T_f, one line per
+    setting (labelled with its Ē / locomotion's Ē), the paper's x_f as a red line."""
+    from mmctl.study.users import HOLD_TIME
+
+    plt = _pyplot()
+    from matplotlib import colormaps
+
+    hold = HOLD_TIME if hold_time is None else float(hold_time)
+    fig, (ax, axr) = plt.subplots(1, 2, figsize=(12.0, 4.8),
+                                  gridspec_kw={"width_ratios": [1.4, 1.0]})
+    reads = ["T_f", *(f"T_f + {d:g} s" for d in X_F_DELAYS), f"hold's end (T_f + {hold:g} s)"]
+    times = [0.0, *X_F_DELAYS, hold]
+
+    def xs(r: Any) -> list[float]:
+        after = list(getattr(r, "x_f_after", ()))
+        after += [math.nan] * (len(X_F_DELAYS) - len(after))
+        return [r.x_f, *after[: len(X_F_DELAYS)], getattr(r, "x_f_hold", math.nan)]
+
+    loco = next((r for r in rows if r.setting is None and r.E > 0), None)
+    e_loc = float(loco.E) if loco is not None else math.nan
+    groups: dict[tuple[str, float], list[Any]] = {}
+    for r in rows:
+        if r.setting is not None and not r.setting.coupled:
+            groups.setdefault((r.setting.projector, float(r.setting.base_scale)), []).append(r)
+    styles = {"dynamic": "-", "euclidean": "--"}
+    read_colours = [colormaps["viridis"](i / max(len(reads) - 1, 1)) for i in range(len(reads))]
+    all_rs = [r for rs in groups.values() for r in rs]
+    gain_cmap = colormaps["plasma"]
+    g_all = sorted({_gain(r.setting) for r in all_rs}) or [1.0]
+    lg = [math.log(g) for g in g_all]
+
+    def g_colour(g: float) -> Any:
+        span = (lg[-1] - lg[0]) or 1.0
+        return gain_cmap(0.85 * (math.log(g) - lg[0]) / span)
+
+    for (proj, scale), rs in groups.items():
+        rs = sorted(rs, key=lambda r: _gain(r.setting))
+        ls = styles.get(proj, ":")
+        name = f"{proj}, s = {scale:g}"
+        for i, read in enumerate(reads):
+            pts = [(xs(r)[i], r.E) for r in rs]
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "o", ls=ls, color=read_colours[i],
+                    ms=4, lw=1.1, label=f"x_f read at {read} ({name})")
+        for r in rs:  # the gains along the T_f curve
+            ax.annotate(f"G×{_gain(r.setting):g}", (r.x_f, r.E), textcoords="offset points",
+                        xytext=(5, 3), fontsize=7, color="0.25")
+            rel = f"Ē {r.E / e_loc:.2f}× loc." if math.isfinite(e_loc) else f"Ē {r.E:.2f} J"
+            axr.plot(times, xs(r), "o", ls=ls, color=g_colour(_gain(r.setting)), ms=4, lw=1.1,
+                     label=f"{proj} G×{_gain(r.setting):g} ({rel})")
+    if loco is not None:
+        ax.plot(loco.x_f, loco.E, "s", color="tab:red", ms=8, label="locomotion (x_f at T_f)")
+        axr.plot(times, xs(loco), "s", ls=":", color="tab:red", ms=5, lw=1,
+                 label="locomotion (paper's G)")
+    ax.plot(PAPER_MIN_ENERGY_XF, PAPER_MIN_ENERGY_E, "D", mfc="tab:red", mec="darkred",
+            ms=8, zorder=7, gid="paper-point", label=PAPER_POINT_LABEL)
+    if math.isfinite(e_loc):
+        ratio = PAPER_MIN_ENERGY_E / PAPER_LOCOMOTION_E
+        ax.plot(PAPER_MIN_ENERGY_XF, ratio * e_loc, "D", mfc="none", mec="tab:red", mew=1.6,
+                ms=8, zorder=7, gid="paper-point-relative", label=PAPER_POINT_REL_LABEL)
+        sec = ax.secondary_yaxis("right", functions=(lambda e: e / e_loc,
+                                                     lambda q: q * e_loc))
+        sec.set_ylabel("median Ē / the simulation's locomotion Ē", fontsize=8)
+        sec.tick_params(labelsize=7)
+    axr.axhline(PAPER_MIN_ENERGY_XF, color="tab:red", lw=1.2, gid="paper-x-f",
+                label=PAPER_XF_LABEL)
+    ax.set_xlabel("median x_f [m], read at the time the colour gives")
+    ax.set_ylabel("median Ē [J] (over 0..T_f)")
+    ax.set_title("Ē–x_f over the null-space gain G×g, x_f read at T_f and later", fontsize=10)
+    ax.grid(alpha=0.3)
+    axr.set_xlabel("time after T_f at which x_f is read [s] (the hold ends at "
+                   f"{hold:g} s)")
+    axr.set_ylabel("median x_f [m]")
+    axr.set_title("x_f against the time it is read", fontsize=10)
+    axr.set_ylim(bottom=0.0)
+    axr.grid(alpha=0.3)
+    axr.legend(fontsize=6.5, loc="best")
+    users = (meta or {}).get("users")
+    if meta:
+        fig.suptitle(f"Null-space gain and read time: {users} users, seed "
+                     f"{meta.get('seed')}, {'quick' if meta.get('quick') else 'full'} task",
+                     fontsize=10)
+    n = (f"n = {users} users: {len(rows)} settings (locomotion included) × {users} users = "
+         f"{len(rows) * int(users)} executions{_setting(meta)}" if users is not None
+         else f"{len(rows)} settings; n (users) not given")
+    caption = ("Left: each point the medians over the users of one min-energy setting, the "
+               "arm's null-space gain G = g·diag(1, 1, 1, 1, 1, 1, 0, 0, 0) [1/s] (the "
+               "paper's: g = 1; written along the T_f curve), Ē over 0..T_f as the paper "
+               "defines it, x_f = ||p − p_des|| of the handle relative to the base read at "
+               "T_f (the paper's definition) or later, during the end-of-trial hold in "
+               "which the person keeps the peg in the last hole and the robot runs on "
+               "(colour: when it is read). Red diamond: the paper's measured min-energy "
+               f"(Table III: x_f = {PAPER_MIN_ENERGY_XF:g} m, Ē = {PAPER_MIN_ENERGY_E:g} J); "
+               f"hollow: at the paper's ratio to its locomotion ({PAPER_MIN_ENERGY_E:g}/"
+               f"{PAPER_LOCOMOTION_E:g} = {PAPER_MIN_ENERGY_E / PAPER_LOCOMOTION_E:.2f}×) "
+               "times the simulation's locomotion Ē, read on the right axis. Right: the same "
+               "x_f against the time it is read, one line per setting; red: the paper's "
+               f"x_f. Locomotion keeps the paper's G. {n}.")
+    cond = conditions_text((meta or {}).get("conditions"))
+    handles, labels = ax.get_legend_handles_labels()
+    band = _layout(fig, caption + (" " + cond if cond else ""),
+                   legend_rows=-(-len(handles) // 2))
+    fig.legend(handles, labels, loc="lower left", bbox_to_anchor=(0.01, band), ncol=2,
+               fontsize=7, frameon=False)
+    return fig
+
+
+def gain_read_curve(rows: Sequence[Any], path: Path,
+                    meta: Mapping[str, Any] | None = None) -> None:
+    """The gain and read-time figure (:func:`gain_read_figure`) into ``path``."""
+    fig = gain_read_figure(rows, meta)
     _save(fig, path)
     _close(fig)
 

@@ -28,6 +28,10 @@ APPROACH_NAMES: dict[str, str] = {
     "manipulation": "Manipulation",
     "constrained-min-energy": "Constrained Min. Energy",
 }
+#: [s] after T_f, within the end-of-trial hold, at which x_f is read again
+#: (:attr:`Execution.x_f_after`; issue 32: when does the paper's x_f = 0.08 m hold?).
+X_F_DELAYS: tuple[float, ...] = (0.5, 1.0, 2.0)
+
 #: The paper's approaches, in its order.
 PAPER_APPROACHES: tuple[str, ...] = ("locomotion", "switch", "min-energy")
 
@@ -94,7 +98,10 @@ class Execution(NamedTuple):
     state machine latched and stopped the robot for (nobody re-enables in a study:
     the execution then ends unfinished), "" when none; limited: fraction of the samples
     k = 1..N on which a limit bound the controller's command (``StepOutputs.limit``
-    not empty: any of :data:`mmctl.control.limits.LIMIT_NAMES`; the sweep reports it).
+    not empty: any of :data:`mmctl.control.limits.LIMIT_NAMES`; the sweep reports it);
+    x_f_after [m]: x_f read :data:`X_F_DELAYS` after T_f, one per delay (the cycle
+    ``round(delay / dt)`` after T_f's, the hold's last if the hold is shorter; = x_f
+    when unfinished; empty: an execution made before issue 32).
     """
 
     user: int
@@ -116,6 +123,7 @@ class Execution(NamedTuple):
     F_applied: float = math.nan
     wall_clearance: float = math.nan
     E_base_near: float = math.nan
+    x_f_after: tuple[float, ...] = ()
 
     def metric(self, name: str) -> float:
         """One of :data:`METRICS` by name."""

@@ -26,7 +26,8 @@ k = 1..N with ``N T = T_f``, the first cycle at which the human has finished the
 insertion.  ``x_f = ||p(T_f) - p_des||`` with ``p`` the handle position relative to
 the base (FK of the arm joints) and ``p_des = FK(q_des)``.  Then the person holds the
 peg in the last hole for the hold time while the robot runs on: ``x_f_hold`` is the
-same distance at the end of the hold (the metrics' samples stop at T_f).
+same distance at the end of the hold (the metrics' samples stop at T_f), and
+``x_f_after`` the same distance :data:`~mmctl.study.results.X_F_DELAYS` after T_f.
 
 Executions are independent and deterministic, so a study's results do not depend on
 how many worker processes ran them.
@@ -75,7 +76,7 @@ from mmctl.sim.human import (
 from mmctl.sim.plant import Plant
 from mmctl.study.config import StudyConfig
 from mmctl.study.executor import Executor, run_all
-from mmctl.study.results import NEAR_WALL, Execution, Series
+from mmctl.study.results import NEAR_WALL, X_F_DELAYS, Execution, Series
 from mmctl.study.users import draw_user
 from mmctl.types import ArmState, Odometry, Wrench
 
@@ -263,6 +264,10 @@ def run_execution(
         locomotion=loco[: n + 1 : step_].copy(),
     )
     near = clearance[sl] < NEAR_WALL
+    # x_f read again during the hold, at fixed delays after T_f (the hold's last cycle
+    # at most)
+    x_f_after = (tuple(float(deviation[min(k_done + round(d / dt), k_last)])
+                       for d in X_F_DELAYS) if completed else (m.x_f,) * len(X_F_DELAYS))
     ex = Execution(user, strategy, m.E_mean, m.F_mean, m.v_mean, m.x_f, m.T_f,
                    float(energy_base[sl].mean()), float(force[sl].max()), switches, completed,
                    faults, series, float(limited[sl].mean()),
@@ -272,7 +277,8 @@ def run_execution(
                    wall_clearance=(float(clearance[sl].min()) if deck.surface is not None
                                    else math.nan),
                    E_base_near=(float(energy_base[sl][near].mean()) if near.any()
-                                else math.nan))
+                                else math.nan),
+                   x_f_after=x_f_after)
     return ex, time.process_time() - cpu0, tare_cycles + k_last + 1
 
 

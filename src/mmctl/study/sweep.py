@@ -18,6 +18,14 @@ arm-base coupling the paper neglects in its eq. 11) with the base's own part sca
 same way.  The *measured* energy E_K (the metric Ē) always uses the true block-diagonal
 M of the paper's eq. 10: only the controller's weighting changes.
 
+The null-space gain's magnitude is a third dimension (issue 32): ``gain_scale`` g
+multiplies the arm's entries of G (``idk.null_gain``; the paper's G = diag(1, ..., 1,
+0, 0, 0) [1/s], so g = 1 is the paper) in ``z = G (q_des - q)``, in the min-energy
+executions only (the locomotion reference keeps the configured G).  Every execution
+also reads x_f again at fixed delays after T_f within the end-of-trial hold
+(:data:`mmctl.study.results.X_F_DELAYS`, :attr:`Execution.x_f_after`), so the sweep
+tells when x_f is read as well as how the solver is set.
+
 Every setting runs the same users through the study's executions
 (:func:`mmctl.study.runner.run_execution` with a :class:`Setting` as its variant) on the
 study's executor, so for a given seed the numbers do not depend on ``--jobs``.  The
@@ -26,10 +34,12 @@ the dynamic projector and no coupling the solver computes exactly what the plain
 min-energy strategy computes (``tests/test_study_sweep.py`` compares the executions).
 
 Outputs: ``sweep.csv`` (one row per setting: medians over the users, x_f also after
-the end-of-trial hold, the limit-active fraction, whether it dominates the
-simulation's min-energy at the paper's setting, s = 1 dynamic: ``paper`` = 1 marks that
-row, a setting, not the paper's measured result) and ``sweep.png``
-(:func:`mmctl.study.plots.sweep_curve`).
+the end-of-trial hold and at the delays, the limit-active fraction, whether it
+dominates the simulation's min-energy at the paper's setting, s = 1 dynamic, g = 1:
+``paper`` = 1 marks that row, a setting, not the paper's measured result),
+``sweep.png`` (:func:`mmctl.study.plots.sweep_curve`) and, when the grid has more than
+one gain, ``sweep-gain.png`` (:func:`mmctl.study.plots.gain_read_curve`: Ē against x_f
+read at T_f, at the delays and at the hold's end, over the gains).
 """
 
 from __future__ import annotations
@@ -38,7 +48,7 @@ import csv
 import io
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -46,6 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmctl.config import Config
+from mmctl.config.control import IdkConfig
 from mmctl.control.cycle import CycleChain
 from mmctl.control.idk import min_energy, min_energy_block, null_project
 from mmctl.control.limits import Limits
@@ -55,7 +66,7 @@ from mmctl.model.robot import Kinematics
 from mmctl.sim.human import HumanParams
 from mmctl.study.config import StudyConfig
 from mmctl.study.executor import Executor, run_all
-from mmctl.study.results import Execution
+from mmctl.study.results import X_F_DELAYS, Execution
 from mmctl.study.runner import Progress, run_execution
 from mmctl.study.users import draw_user
 
@@ -67,6 +78,26 @@ PROJECTORS: tuple[str, ...] = ("dynamic", "euclidean")
 #: Default base scales: 10^(k/4), k = -4..4 (0.1 .. 10, log-spaced, 1 = the paper).
 DEFAULT_SCALES: tuple[float, ...] = tuple(float(10.0 ** (k / 4.0)) for k in range(-4, 5))
 
+#: Default null-space gain scales: the paper's G only.
+DEFAULT_GAINS: tuple[float, ...] = (1.0,)
+
+#: The configuration's own bound on each entry of ``idk.null_gain`` [1/s].
+MAX_NULL_GAIN: float = float(next(f for f in fields(IdkConfig)  # type: ignore[arg-type]
+                                  if f.name == "null_gain").metadata["le"])
+
+
+def scaled_gain(null_gain: Sequence[float], gain_scale: float) -> tuple[float, ...]:
+    """``idk.null_gain`` (9,) with its arm entries (the first six) times ``gain_scale``,
+    the base's as they are; ConfigError naming ``idk.null_gain`` when an entry leaves
+    the configuration's range (<= :data:`MAX_NULL_GAIN`)."""
+    g = tuple(float(v) * gain_scale if i < 6 else float(v) for i, v in enumerate(null_gain))
+    if max(g) > MAX_NULL_GAIN:
+        raise ConfigError("idk.null_gain", [round(v, 6) for v in g],
+                          f"must be <= {MAX_NULL_GAIN:g} [1/s] in every entry (the "
+                          f"configuration's range); the gain scale {gain_scale:g} times the "
+                          "configured G exceeds it")
+    return g
+
 
 @dataclass(frozen=True)
 class Setting:
@@ -75,16 +106,20 @@ class Setting:
     base_scale: factor s > 0 on the base's own inertia M_b in the IDK's weighting
     (1 = the paper); projector: ``dynamic`` or ``euclidean`` null-space projector;
     coupled: the coupled whole-body inertia (``robot.full_inertia``) instead of the
-    paper's block-diagonal M.
+    paper's block-diagonal M; gain_scale: factor g > 0 on the arm's entries of the
+    null-space gain G (``idk.null_gain``; 1 = the paper's G).
     """
 
     base_scale: float = 1.0
     projector: str = "dynamic"
     coupled: bool = False
+    gain_scale: float = 1.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.base_scale) and self.base_scale > 0.0):
             raise ConfigError("sweep.base_scale", self.base_scale, "must be a number > 0")
+        if not (math.isfinite(self.gain_scale) and self.gain_scale > 0.0):
+            raise ConfigError("sweep.gain_scale", self.gain_scale, "must be a number > 0")
         if self.projector not in PROJECTORS:
             raise ConfigError("sweep.projector", self.projector,
                               f"must be one of {', '.join(PROJECTORS)}")
@@ -92,21 +127,30 @@ class Setting:
     @property
     def paper(self) -> bool:
         """The paper's setting of min-energy: scale 1, dynamically consistent,
-        block-diagonal M (its simulation, not the paper's measured result)."""
-        return self.base_scale == 1.0 and self.projector == "dynamic" and not self.coupled
+        block-diagonal M, the paper's G (its simulation, not the paper's measured
+        result)."""
+        return (self.base_scale == 1.0 and self.projector == "dynamic" and not self.coupled
+                and self.gain_scale == 1.0)
 
     @property
     def label(self) -> str:
-        """Short text, e.g. ``s=0.32 dynamic`` or ``s=1 euclidean coupled``."""
+        """Short text, e.g. ``s=0.32 dynamic``, ``s=1 euclidean coupled`` or ``s=1
+        dynamic G×4`` (the gain only when it is not the paper's)."""
         return (f"s={self.base_scale:.3g} {self.projector}"
-                + (" coupled" if self.coupled else ""))
+                + (" coupled" if self.coupled else "")
+                + (f" G×{self.gain_scale:.3g}" if self.gain_scale != 1.0 else ""))
 
     # --- the Variant interface (mmctl.study.runner.Variant) -----------------------
     def config(self, cfg: Config) -> Config:
-        """``robot.full_inertia`` on for the coupled ablation; otherwise ``cfg``."""
-        if not self.coupled:
-            return cfg
-        return replace(cfg, robot=replace(cfg.robot, full_inertia=True))  # type: ignore[type-var]
+        """``robot.full_inertia`` on for the coupled ablation, the arm's entries of
+        ``idk.null_gain`` times ``gain_scale`` (:func:`scaled_gain`); at the paper's
+        setting ``cfg`` itself."""
+        if self.coupled:
+            cfg = replace(cfg, robot=replace(cfg.robot, full_inertia=True))  # type: ignore[type-var]
+        if self.gain_scale != 1.0:
+            cfg = replace(cfg, idk=replace(  # type: ignore[type-var]
+                cfg.idk, null_gain=scaled_gain(cfg.idk.null_gain, self.gain_scale)))
+        return cfg
 
     def chain(self, cfg: Config) -> CycleChain:
         """The robot's cycle chain with :class:`WeightedMinEnergy` as its min-energy
@@ -169,12 +213,14 @@ class WeightedMinEnergy(MinEnergy):
         return out
 
 def settings(scales: Sequence[float] = DEFAULT_SCALES, projectors: Sequence[str] = PROJECTORS,
-             coupled: bool = True) -> list[Setting]:
-    """Every (scale, projector) pair, then the coupled ablation at scale 1 with each
-    projector (``coupled``)."""
-    out = [Setting(float(s), pr) for pr in projectors for s in scales]
+             coupled: bool = True, gains: Sequence[float] = DEFAULT_GAINS) -> list[Setting]:
+    """Every (projector, gain, scale), in that nesting, then the coupled ablation at
+    scale 1 with each projector and gain (``coupled``).  With the default gains (the
+    paper's G only) the grid is the (scale, projector) grid of before issue 32."""
+    out = [Setting(float(s), pr, False, float(g)) for pr in projectors for g in gains
+           for s in scales]
     if coupled:
-        out += [Setting(1.0, pr, True) for pr in projectors]
+        out += [Setting(1.0, pr, True, float(g)) for pr in projectors for g in gains]
     return out
 
 
@@ -184,8 +230,10 @@ class SweepRow(NamedTuple):
     paper's metrics [J, N, m/s, m, s]; limited: median over users of the fraction of
     samples on which a limit bound the command; completed: executions finished within
     the time limit; dominates: median Ē and median x_f both below those of the
-    simulation's min-energy at the paper's setting (s = 1, dynamic, block);
-    x_f_hold: median x_f after the end-of-trial hold [m] (NaN: no hold)."""
+    simulation's min-energy at the paper's setting (s = 1, dynamic, block, G);
+    x_f_hold: median x_f after the end-of-trial hold [m] (NaN: no hold); x_f_after:
+    median x_f read :data:`~mmctl.study.results.X_F_DELAYS` after T_f [m], one per
+    delay (NaN where an execution has none)."""
 
     approach: str
     setting: Setting | None
@@ -201,6 +249,7 @@ class SweepRow(NamedTuple):
     faults: int
     dominates: bool
     x_f_hold: float = math.nan
+    x_f_after: tuple[float, ...] = ()
 
 
 class SweepResult(NamedTuple):
@@ -226,10 +275,14 @@ def _row(approach: str, setting: Setting | None, execs: Sequence[Execution]) -> 
     def med(name: str) -> float:
         return float(np.median([getattr(e, name) for e in execs]))
 
+    def after(i: int) -> float:
+        vals = [e.x_f_after[i] if len(e.x_f_after) > i else math.nan for e in execs]
+        return float(np.median(vals))
+
     return SweepRow(approach, setting, len(execs), med("E"), med("F_h"), med("v"), med("x_f"),
                     med("T_f"), med("E_base"), med("limited"),
                     sum(1 for e in execs if e.completed), sum(e.faults for e in execs), False,
-                    med("x_f_hold"))
+                    med("x_f_hold"), tuple(after(i) for i in range(len(X_F_DELAYS))))
 
 
 def run_sweep(study: StudyConfig, grid: Sequence[Setting], executor: Executor | None = None,
@@ -261,11 +314,19 @@ def run_sweep(study: StudyConfig, grid: Sequence[Setting], executor: Executor | 
     return SweepResult(rows, per, sum(r[2] for r in done), sum(r[3] for r in done))
 
 
-#: sweep.csv columns, in order.
+#: sweep.csv's columns of x_f read after T_f, one per delay: ``x_f_0.5s`` ...
+AFTER_COLUMNS: tuple[str, ...] = tuple(f"x_f_{d:g}s" for d in X_F_DELAYS)
+
+#: sweep.csv columns, in order (issue 32's appended: the gain scale, x_f at the delays).
 CSV_COLUMNS: tuple[str, ...] = (
     "approach", "base_scale", "projector", "coupled", "paper", "users", "E", "F_h", "v", "x_f",
     "T_f", "E_base", "limited", "completed", "faults", "dominates", "x_f_hold",
+    "gain_scale", *AFTER_COLUMNS,
 )
+
+
+def _after(r: SweepRow, i: int) -> float:
+    return r.x_f_after[i] if len(r.x_f_after) > i else math.nan
 
 
 def sweep_csv(rows: Sequence[SweepRow]) -> str:
@@ -280,26 +341,38 @@ def sweep_csv(rows: Sequence[SweepRow]) -> str:
                     int(s is not None and s.paper), r.users,
                     *(format(getattr(r, m), ".10g")
                       for m in ("E", "F_h", "v", "x_f", "T_f", "E_base", "limited")),
-                    r.completed, r.faults, int(r.dominates), format(r.x_f_hold, ".10g")])
+                    r.completed, r.faults, int(r.dominates), format(r.x_f_hold, ".10g"),
+                    "" if s is None else format(s.gain_scale, ".10g"),
+                    *(format(_after(r, i), ".10g") for i in range(len(X_F_DELAYS)))])
     return buf.getvalue()
 
 
 def sweep_table(rows: Sequence[SweepRow]) -> str:
     """Markdown table of the sweep: one row per setting; "min-energy (paper's setting)"
-    is the simulation's run at s = 1, dynamic, block-diagonal M (not the paper's
-    measured numbers), and "dominates" compares with that row."""
-    lines = [("| approach | s | projector | M | Ē [J] | x_f [m] | x_f hold [m] | F̄_h [N] "
-              "| T_f [s] | base share of Ē | limit active | dominates s = 1 |"),
-             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+    is the simulation's run at s = 1, dynamic, block-diagonal M, the paper's G (not the
+    paper's measured numbers), and "dominates" compares with that row.  G: the gain
+    scale g on the paper's G; Ē / loc.: the row's median Ē over the locomotion row's
+    (the paper's min-energy: 0.86 / 2.52 = 0.34); x_f then x_f read +d s after T_f
+    and at the end of the hold."""
+    loco = next((r.E for r in rows if r.setting is None and r.E > 0), math.nan)
+    after = "".join(f" x_f +{d:g} s [m] |" for d in X_F_DELAYS)
+    lines = [("| approach | s | G | projector | M | Ē [J] | Ē / loc. | x_f [m] |" + after
+              + " x_f hold [m] | F̄_h [N] | T_f [s] | base share of Ē | limit active "
+              "| dominates s = 1 |"),
+             "|---|---:|---:|---|---|---:|---:|---:|" + "---:|" * len(X_F_DELAYS)
+             + "---:|---:|---:|---:|---:|---|"]
     for r in rows:
         s = r.setting
         share = r.E_base / r.E if r.E > 0 else math.nan
         name = "min-energy (paper's setting)" if s is not None and s.paper else r.approach
+        reads = "".join(f" {_after(r, i):.3f} |" for i in range(len(X_F_DELAYS)))
         lines.append(
             f"| {name} | {'' if s is None else f'{s.base_scale:.3g}'} "
+            f"| {'' if s is None else f'{s.gain_scale:.3g}'} "
             f"| {'' if s is None else s.projector} "
             f"| {'' if s is None else ('coupled' if s.coupled else 'block')} "
-            f"| {r.E:.3f} | {r.x_f:.3f} | {r.x_f_hold:.3f} | {r.F_h:.2f} | {r.T_f:.2f} | {100 * share:.0f} % "
+            f"| {r.E:.3f} | {r.E / loco:.2f} | {r.x_f:.3f} |{reads} {r.x_f_hold:.3f} "
+            f"| {r.F_h:.2f} | {r.T_f:.2f} | {100 * share:.0f} % "
             f"| {100 * r.limited:.1f} % | {'yes' if r.dominates else ''} |")
     return "\n".join(lines)
 
@@ -315,4 +388,9 @@ def write_sweep(out: Path, result: SweepResult, meta: dict[str, Any],
 
         paths.append(out / "sweep.png")
         sweep_curve(result.rows, paths[1], meta)
+        if len({r.setting.gain_scale for r in result.rows if r.setting is not None}) > 1:
+            from mmctl.study.plots import gain_read_curve
+
+            paths.append(out / "sweep-gain.png")
+            gain_read_curve(result.rows, paths[-1], meta)
     return paths
