@@ -178,3 +178,25 @@ def test_sensitivity_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFi
 def test_bad_trajectories_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["study", "sensitivity", "--trajectories", "1", "--out", "/nonexistent"]) == 2
     assert "--trajectories" in capsys.readouterr().err
+
+
+def test_the_points_tool_lists_the_screens_seeded_steps_and_refuses_a_point_outside_it(
+) -> None:
+    """tools/sensitivity_points.py runs a screen's points again by index: the sample is
+    the screen's (seeded), so the step 24 -> 25 of the default screen is the stiffness
+    step of trajectory 1 that docs/study.md's μ* re-check names."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tool = Path(__file__).resolve().parents[1] / "tools" / "sensitivity_points.py"
+    out = subprocess.run([sys.executable, str(tool), "--steps"], capture_output=True,
+                         text=True, check=True).stdout.splitlines()
+    assert len(out) == 4 * 17  # 17 steps in each of the 4 trajectories
+    steps = {int(line.split()[0]): line for line in out}
+    assert "human.stiffness: 150 -> 650" in steps[24]
+    assert "human.speed: 0.38 -> 0.2267" in steps[25]
+    assert 17 not in steps  # point 17 ends trajectory 0
+    bad = subprocess.run([sys.executable, str(tool), "72"], capture_output=True, text=True,
+                         check=False)
+    assert bad.returncode == 2 and "give point indices in 0..71 (got [72])" in bad.stderr
