@@ -34,6 +34,7 @@ from mmctl.study.sweep import (
     CSV_COLUMNS,
     Setting,
     SweepRow,
+    read_sweep_csv,
     run_sweep,
     scaled_gain,
     settings,
@@ -203,6 +204,20 @@ def test_csv_and_table_carry_the_gain_and_the_delays() -> None:
     assert "| G |" in head and "Ē / loc." in head and "x_f +0.5 s [m]" in head
     line = table.splitlines()[4]  # G x 4
     assert "| 4 |" in line and "| 0.35 |" in line and "| 0.200 | 0.150 | 0.100 | 0.080 |" in line
+
+
+def test_sweep_csv_reads_back() -> None:
+    rows = _rows()
+    back = read_sweep_csv(sweep_csv(rows))
+    assert back == rows  # every field (these numbers have fewer than 10 digits)
+    assert back[2].setting == Setting(1.0, "dynamic", False, 4.0) and back[3].setting is None
+    # a file from before issue 32: the paper's G, no reads after T_f
+    old_cols = CSV_COLUMNS[:17]
+    text = "\n".join(",".join(r.split(",")[:17]) for r in sweep_csv(rows).splitlines())
+    assert text.splitlines()[0].split(",") == list(old_cols)
+    old = read_sweep_csv(text)
+    assert [r.setting for r in old] == [Setting(1.0), Setting(1.0), Setting(1.0), None]
+    assert all(r.x_f_after == () for r in old) and old[2].x_f_hold == 0.08
 
 
 def test_the_gain_figure_draws_every_read_and_the_papers_point() -> None:

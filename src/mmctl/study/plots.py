@@ -712,9 +712,11 @@ def gain_read_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None,
                    f"{hold:g} s)")
     axr.set_ylabel("median x_f [m]")
     axr.set_title("x_f against the time it is read", fontsize=10)
-    axr.set_ylim(bottom=0.0)
+    # room above the lines for the legend (two columns), which would hide them
+    top = max((x for r in rows for x in xs(r) if math.isfinite(x)), default=PAPER_MIN_ENERGY_XF)
+    axr.set_ylim(0.0, 1.45 * max(top, PAPER_MIN_ENERGY_XF))
     axr.grid(alpha=0.3)
-    axr.legend(fontsize=6.5, loc="best")
+    axr.legend(fontsize=6, loc="upper right", ncol=2)
     users = (meta or {}).get("users")
     if meta:
         fig.suptitle(f"Null-space gain and read time: {users} users, seed "

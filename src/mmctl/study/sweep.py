@@ -347,6 +347,29 @@ def sweep_csv(rows: Sequence[SweepRow]) -> str:
     return buf.getvalue()
 
 
+def read_sweep_csv(text: str) -> list[SweepRow]:
+    """sweep.csv's content back as rows (its 10 significant digits), to redraw the
+    figures without running the sweep again; a file from before issue 32 (no
+    ``gain_scale``, no reads after T_f) reads as the paper's G with no reads."""
+    out = []
+    for d in csv.DictReader(io.StringIO(text)):
+        setting = None
+        if d["base_scale"]:
+            setting = Setting(float(d["base_scale"]), d["projector"], d["coupled"] == "1",
+                              float(d.get("gain_scale") or 1.0))
+        after = tuple(float(d[c]) for c in AFTER_COLUMNS if d.get(c))
+
+        def num(m: str, d: dict[str, str] = d) -> float:
+            return float(d[m])
+
+        out.append(SweepRow(
+            d["approach"], setting, int(d["users"]), num("E"), num("F_h"), num("v"),
+            num("x_f"), num("T_f"), num("E_base"), num("limited"), int(d["completed"]),
+            int(d["faults"]), d["dominates"] == "1", float(d.get("x_f_hold") or math.nan),
+            after))
+    return out
+
+
 def sweep_table(rows: Sequence[SweepRow]) -> str:
     """Markdown table of the sweep: one row per setting; "min-energy (paper's setting)"
     is the simulation's run at s = 1, dynamic, block-diagonal M, the paper's G (not the
