@@ -549,19 +549,8 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
                     label="_nolegend_" if ringed else "dominates the simulation's "
                     "min-energy (lower median Ē and x_f than s = 1)")
             ringed = True
-    # the paper's measured point: raw, and relative to its locomotion on a right axis
-    ax.plot(PAPER_MIN_ENERGY_XF, PAPER_MIN_ENERGY_E, "D", mfc="tab:red", mec="darkred",
-            ms=8, zorder=7, gid="paper-point", label=PAPER_POINT_LABEL)
     loco = next((r for r in rows if r.setting is None and r.E > 0), None)
-    if loco is not None:
-        e_loc = float(loco.E)
-        ratio = PAPER_MIN_ENERGY_E / PAPER_LOCOMOTION_E
-        ax.plot(PAPER_MIN_ENERGY_XF, ratio * e_loc, "D", mfc="none", mec="tab:red", mew=1.6,
-                ms=8, zorder=7, gid="paper-point-relative", label=PAPER_POINT_REL_LABEL)
-        sec = ax.secondary_yaxis("right", functions=(lambda e: e / e_loc,
-                                                     lambda q: q * e_loc))
-        sec.set_ylabel("median Ē / the simulation's locomotion Ē", fontsize=8)
-        sec.tick_params(labelsize=7)
+    _paper_points(ax, float(loco.E) if loco is not None else math.nan)
     ax.set_xlabel("median x_f [m]")
     ax.set_ylabel("median Ē [J]")
     ax.set_title("Ē–x_f over the null-space gain's magnitude G×g" if by_gain
@@ -573,14 +562,7 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
     axl.set_title("How often the limits bind", fontsize=10)
     axl.grid(alpha=0.3)
     axl.legend(fontsize=7, loc="best")
-    users = (meta or {}).get("users")
-    if meta:
-        fig.suptitle(f"Inertia-weighting sweep: {users} users, seed "
-                     f"{meta.get('seed')}, {'quick' if meta.get('quick') else 'full'} task",
-                     fontsize=10)
-    n = (f"n = {users} users: {len(rows)} settings (locomotion included) × {users} users = "
-         f"{len(rows) * int(users)} executions{_setting(meta)}" if users is not None
-         else f"{len(rows)} settings; n (users) not given")
+    n = _sweep_header(fig, "Inertia-weighting sweep", rows, meta)
     caption = ("Left: each point the medians over the users of one setting of the min-energy "
                "IDK, the base's inertia weighted s·M_b in its solution (Ē is measured with "
                "the true block-diagonal M throughout), with the dynamically consistent or "
@@ -601,14 +583,50 @@ def sweep_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None) -> 
                     "paper's: g = 1) in the min-energy settings; locomotion keeps the "
                     "paper's G." + (" Curves run along g at the one scale s." if by_gain
                                     else ""))
+    _caption_and_legend(fig, ax, caption, meta)
+    return fig
+
+
+def _paper_points(ax: Any, e_loc: float) -> None:
+    """The paper's measured min-energy point on the Ē–x_f axes: raw, and (``e_loc``
+    finite: the simulation's locomotion Ē) at the paper's ratio to its own locomotion,
+    read on a right axis in multiples of the simulation's locomotion Ē."""
+    ax.plot(PAPER_MIN_ENERGY_XF, PAPER_MIN_ENERGY_E, "D", mfc="tab:red", mec="darkred",
+            ms=8, zorder=7, gid="paper-point", label=PAPER_POINT_LABEL)
+    if not math.isfinite(e_loc):
+        return
+    ratio = PAPER_MIN_ENERGY_E / PAPER_LOCOMOTION_E
+    ax.plot(PAPER_MIN_ENERGY_XF, ratio * e_loc, "D", mfc="none", mec="tab:red", mew=1.6,
+            ms=8, zorder=7, gid="paper-point-relative", label=PAPER_POINT_REL_LABEL)
+    sec = ax.secondary_yaxis("right", functions=(lambda e: e / e_loc, lambda q: q * e_loc))
+    sec.set_ylabel("median Ē / the simulation's locomotion Ē", fontsize=8)
+    sec.tick_params(labelsize=7)
+
+
+def _caption_and_legend(fig: Any, ax: Any, caption: str,
+                        meta: Mapping[str, Any] | None) -> None:
+    """A sweep figure's caption (with the study's conditions) and, above it, the left
+    panel's legend in two columns under the panels (its entries would hide the curves)."""
     cond = conditions_text((meta or {}).get("conditions"))
-    # the left panel's legend under the panels: its entries would hide the curves
     handles, labels = ax.get_legend_handles_labels()
     band = _layout(fig, caption + (" " + cond if cond else ""),
                    legend_rows=-(-len(handles) // 2))
     fig.legend(handles, labels, loc="lower left", bbox_to_anchor=(0.01, band), ncol=2,
                fontsize=7, frameon=False)
-    return fig
+
+
+def _sweep_header(fig: Any, title: str, rows: Sequence[Any],
+                  meta: Mapping[str, Any] | None) -> str:
+    """A sweep figure's title (users, seed, task) and its caption's count of settings,
+    users and executions."""
+    users = (meta or {}).get("users")
+    if meta:
+        fig.suptitle(f"{title}: {users} users, seed {meta.get('seed')}, "
+                     f"{'quick' if meta.get('quick') else 'full'} task", fontsize=10)
+    if users is None:
+        return f"{len(rows)} settings; n (users) not given"
+    return (f"n = {users} users: {len(rows)} settings (locomotion included) × {users} users "
+            f"= {len(rows) * int(users)} executions{_setting(meta)}")
 
 
 def sweep_curve(rows: Sequence[Any], path: Path, meta: Mapping[str, Any] | None = None) -> None:
@@ -692,16 +710,7 @@ def gain_read_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None,
         ax.plot(loco.x_f, loco.E, "s", color="tab:red", ms=8, label="locomotion (x_f at T_f)")
         axr.plot(times, xs(loco), "s", ls=":", color="tab:red", ms=5, lw=1,
                  label="locomotion (paper's G)")
-    ax.plot(PAPER_MIN_ENERGY_XF, PAPER_MIN_ENERGY_E, "D", mfc="tab:red", mec="darkred",
-            ms=8, zorder=7, gid="paper-point", label=PAPER_POINT_LABEL)
-    if math.isfinite(e_loc):
-        ratio = PAPER_MIN_ENERGY_E / PAPER_LOCOMOTION_E
-        ax.plot(PAPER_MIN_ENERGY_XF, ratio * e_loc, "D", mfc="none", mec="tab:red", mew=1.6,
-                ms=8, zorder=7, gid="paper-point-relative", label=PAPER_POINT_REL_LABEL)
-        sec = ax.secondary_yaxis("right", functions=(lambda e: e / e_loc,
-                                                     lambda q: q * e_loc))
-        sec.set_ylabel("median Ē / the simulation's locomotion Ē", fontsize=8)
-        sec.tick_params(labelsize=7)
+    _paper_points(ax, e_loc)
     axr.axhline(PAPER_MIN_ENERGY_XF, color="tab:red", lw=1.2, gid="paper-x-f",
                 label=PAPER_XF_LABEL)
     ax.set_xlabel("median x_f [m], read at the time the colour gives")
@@ -717,14 +726,7 @@ def gain_read_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None,
     axr.set_ylim(0.0, 1.45 * max(top, PAPER_MIN_ENERGY_XF))
     axr.grid(alpha=0.3)
     axr.legend(fontsize=6, loc="upper right", ncol=2)
-    users = (meta or {}).get("users")
-    if meta:
-        fig.suptitle(f"Null-space gain and read time: {users} users, seed "
-                     f"{meta.get('seed')}, {'quick' if meta.get('quick') else 'full'} task",
-                     fontsize=10)
-    n = (f"n = {users} users: {len(rows)} settings (locomotion included) × {users} users = "
-         f"{len(rows) * int(users)} executions{_setting(meta)}" if users is not None
-         else f"{len(rows)} settings; n (users) not given")
+    n = _sweep_header(fig, "Null-space gain and read time", rows, meta)
     caption = ("Left: each point the medians over the users of one min-energy setting, the "
                "arm's null-space gain G = g·diag(1, 1, 1, 1, 1, 1, 0, 0, 0) [1/s] (the "
                "paper's: g = 1; written along the T_f curve), Ē over 0..T_f as the paper "
@@ -738,12 +740,7 @@ def gain_read_figure(rows: Sequence[Any], meta: Mapping[str, Any] | None = None,
                "times the simulation's locomotion Ē, read on the right axis. Right: the same "
                "x_f against the time it is read, one line per setting; red: the paper's "
                f"x_f. Locomotion keeps the paper's G. {n}.")
-    cond = conditions_text((meta or {}).get("conditions"))
-    handles, labels = ax.get_legend_handles_labels()
-    band = _layout(fig, caption + (" " + cond if cond else ""),
-                   legend_rows=-(-len(handles) // 2))
-    fig.legend(handles, labels, loc="lower left", bbox_to_anchor=(0.01, band), ncol=2,
-               fontsize=7, frameon=False)
+    _caption_and_legend(fig, ax, caption, meta)
     return fig
 
 
